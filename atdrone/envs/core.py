@@ -1,0 +1,350 @@
+"""The batched AT-Drone pursuit simulator: B environments stepped as whole arrays.
+
+Description
+    Four pursuers (0.3 m/s) chase evaders (0.6 m/s) in a 3.6 m x 5 m arena with box
+    and disc obstacles (SPEC sections 1-6). Evaders run the built-in escape policy of
+    :mod:`atdrone.envs.evaders`. One step: pursuers turn and move -> evaders flee and
+    move -> capture and collision -> reward -> observe; finished environments reset
+    themselves at once.
+
+Action Space
+    (num_envs, num_p) floats, clipped to [-1, 1]: heading += a * pi/4, then the drone
+    moves velocity_p * dt along its new heading.
+
+Observation Space
+    (num_envs, num_p, obs_dim) float32, egocentric, ``OBS_LAYOUT_VERSION`` 1. Entities
+    are blocks of 4 features ``[mask, distance / 5, sin(bearing), cos(bearing)]``,
+    the bearing measured from the pursuer's own heading (counter-clockwise positive):
+      - num_e evader blocks (evader index order); mask 0 and zeros when the evader is
+        captured or farther than reception_range;
+      - 1 block for the nearest obstacle or wall (mask always 1; signed distance);
+      - num_p - 1 teammate blocks (the other pursuers in index order); mask 0 and
+        zeros beyond reception_range.
+    obs_dim = 4 * (num_e + num_p).
+
+Rewards
+    Shared by the team, the same value in every pursuer's column: capture per evader
+    captured + approach * sum over evaders uncaptured at the start of the step of the
+    reduction of their nearest-pursuer distance / approach_scale + collision if any
+    collision happened + (optional) proximity band penalties per teammate pair.
+
+Starting State
+    Pursuer i at x = U(region.x) + x_step * i, y = U(region.y); evader j at
+    x = b + x_step * j with one shared b = U(region.x), y = U(region.y); headings +y.
+    With random_respawn false every draw takes the middle of its range.
+
+Episode End
+    Captured all evaders (success), a collision (pursuers < collision_distance apart
+    or a pursuer < safe_radius from an obstacle or wall) when collision_ends_episode,
+    or task_horizon steps (timeout). ``info`` reports how each environment ended.
+
+Arguments
+    task: a TaskConfig, task name or path; num_envs; seed for the numpy Generator
+    that drives every random draw (spawns and evader wandering).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from atdrone.config import TaskConfig, load_task
+from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
+from atdrone.envs.geometry import Geometry, pick_nearest, signed_distances
+
+OBS_LAYOUT_VERSION = 1
+ENTITY_FEATURES = 4
+DIST_SCALE = 5.0
+OBS_BOUND = 1.5  # |feature| never exceeds this: distances / 5 in a 3.6 x 5 arena, sin, cos, masks
+RUNNING, CAPTURED, COLLISION, TIMEOUT = 0, 1, 2, 3
+DONE_REASONS = ("running", "captured", "collision", "timeout")
+
+
+def obs_dim(num_p: int, num_e: int) -> int:
+    """Length of one pursuer's observation."""
+    return ENTITY_FEATURES * (num_e + num_p)
+
+
+@dataclass
+class PursuitState:
+    """Mutable state of B environments; agents are pursuers first, then evaders.
+
+    pos (B, N, 2) metres; heading (B, N) radians; captured (B, E); t (B,) steps;
+    ep_return (B,); ep_collided (B,); wander_heading (B, E); wander_left (B, E) steps;
+    prev_dist (B, E) nearest-pursuer distance of each evader after the last step.
+    """
+
+    pos: np.ndarray
+    heading: np.ndarray
+    captured: np.ndarray
+    t: np.ndarray
+    ep_return: np.ndarray
+    ep_collided: np.ndarray
+    wander_heading: np.ndarray
+    wander_left: np.ndarray
+    prev_dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def copy(self) -> PursuitState:
+        return PursuitState(**{k: v.copy() for k, v in self.__dict__.items()})
+
+
+def spawn(cfg: TaskConfig, rng: np.random.Generator, n: int, max_tries: int = 100) -> tuple[np.ndarray, np.ndarray]:
+    """Start positions (n, N, 2) and headings (n, N) of n environments.
+
+    The pursuers' x ranges overlap (U(0.2, 1.2) + 0.6 i), so an environment whose
+    pursuers would start closer than collision_distance redraws its pursuers.
+    """
+    pl = cfg.players
+    rp, re = pl.respawn_region.pursuer, pl.respawn_region.evader
+
+    def draw(lo_hi: tuple[float, float], shape: tuple[int, ...]) -> np.ndarray:
+        if pl.random_respawn:
+            return rng.uniform(lo_hi[0], lo_hi[1], size=shape)
+        return np.full(shape, (lo_hi[0] + lo_hi[1]) / 2)
+
+    def pursuers(m: int) -> tuple[np.ndarray, np.ndarray]:
+        return draw(rp.x, (m, pl.num_p)) + rp.x_step * np.arange(pl.num_p), draw(rp.y, (m, pl.num_p))
+
+    px, py = pursuers(n)
+    i, j = np.triu_indices(pl.num_p, 1)
+    for _ in range(max_tries):
+        close = (np.hypot(px[:, i] - px[:, j], py[:, i] - py[:, j]) < cfg.task.collision_distance).any(-1)
+        if not close.any():
+            break
+        px[close], py[close] = pursuers(int(close.sum()))
+    ex = draw(re.x, (n, 1)) + re.x_step * np.arange(pl.num_e)
+    ey = draw(re.y, (n, pl.num_e))
+    pos = np.stack([np.concatenate([px, ex], 1), np.concatenate([py, ey], 1)], -1)
+    return pos, np.full((n, pl.num_p + pl.num_e), np.pi / 2)
+
+
+def _relative(pos_from: np.ndarray, heading: np.ndarray, pos_to: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Distance, sin and cos of the bearing from each ``from`` to each ``to``.
+
+    pos_from (B, P, 2), heading (B, P), pos_to (B, M, 2) -> three (B, P, M) arrays.
+    """
+    dx = pos_to[:, None, :, 0] - pos_from[:, :, None, 0]
+    dy = pos_to[:, None, :, 1] - pos_from[:, :, None, 1]
+    dist = np.sqrt(dx * dx + dy * dy)
+    inv = 1.0 / np.maximum(dist, 1e-12)
+    hx, hy = np.cos(heading)[..., None], np.sin(heading)[..., None]
+    return dist, (hx * dy - hy * dx) * inv, (hx * dx + hy * dy) * inv
+
+
+def _others_index(num_p: int) -> np.ndarray:
+    """(P, P-1): for each pursuer the indices of its teammates in order."""
+    return np.array([[j for j in range(num_p) if j != i] for i in range(num_p)], dtype=np.intp).reshape(
+        num_p, num_p - 1
+    )
+
+
+class BatchedPursuit:
+    """B AT-Drone pursuit environments stepped together (see the module docstring)."""
+
+    def __init__(self, task: TaskConfig | str, num_envs: int = 1, seed: int | None = None) -> None:
+        if not isinstance(num_envs, int | np.integer) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        self.cfg = load_task(task)
+        self.num_envs = int(num_envs)
+        self.num_p = self.cfg.players.num_p
+        self.num_e = self.cfg.players.num_e
+        self.obs_dim = obs_dim(self.num_p, self.num_e)
+        self.geometry = Geometry.from_config(self.cfg)
+        self.escape = EscapeParams()
+        self.rng = np.random.default_rng(seed)
+        self._others = _others_index(self.num_p)
+        # observation slots of the evader blocks then the teammate blocks (the obstacle sits between)
+        # (rows, cols) into (P, N) pairwise arrays: each pursuer's evaders then teammates
+        ev = np.arange(self.num_p, self.num_p + self.num_e)[None].repeat(self.num_p, 0)
+        self._entity_index = (np.arange(self.num_p)[:, None], np.concatenate([ev, self._others], 1))
+        self._entity_slots = np.r_[np.arange(self.num_e), np.arange(self.num_e + 1, self.num_e + self.num_p)]
+        self._pairs = np.triu_indices(self.num_p, 1)
+        # (pairs, P) incidence: which two pursuers make up each pair.
+        self._pair_member = np.zeros((len(self._pairs[0]), self.num_p), dtype=np.int64)
+        self._pair_member[np.arange(len(self._pairs[0])), self._pairs[0]] = 1
+        self._pair_member[np.arange(len(self._pairs[0])), self._pairs[1]] = 1
+        self.state = self._fresh_state(self.num_envs)
+        self._obs: np.ndarray | None = None
+        # the whole batch just before the last auto-reset (to show how episodes ended)
+        self.final_state: PursuitState | None = None
+
+    # ------------------------------------------------------------------ state
+    def _fresh_state(self, n: int) -> PursuitState:
+        pos, heading = spawn(self.cfg, self.rng, n)
+        e = self.num_e
+        lo, hi = self.escape.wander_steps
+        state = PursuitState(
+            pos=pos,
+            heading=heading,
+            captured=np.zeros((n, e), dtype=bool),
+            t=np.zeros(n, dtype=np.int64),
+            ep_return=np.zeros(n),
+            ep_collided=np.zeros(n, dtype=bool),
+            wander_heading=heading[:, self.num_p :].copy(),
+            wander_left=self.rng.integers(lo, hi + 1, size=(n, e)),
+        )
+        state.prev_dist = self._evader_distances(state.pos)
+        return state
+
+    def _evader_distances(self, pos: np.ndarray) -> np.ndarray:
+        """Nearest-pursuer distance of each evader, (B, E)."""
+        P = self.num_p
+        dx = pos[:, P:, None, 0] - pos[:, None, :P, 0]
+        dy = pos[:, P:, None, 1] - pos[:, None, :P, 1]
+        return np.sqrt(dx * dx + dy * dy).min(-1)
+
+    @property
+    def pursuer_pos(self) -> np.ndarray:
+        return self.state.pos[:, : self.num_p]
+
+    @property
+    def evader_pos(self) -> np.ndarray:
+        return self.state.pos[:, self.num_p :]
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Reset every environment; reseed first when ``seed`` is given."""
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        self.state = self._fresh_state(self.num_envs)
+        self._obs = self.observe()
+        return self._obs
+
+    # ------------------------------------------------------------ observation
+    def observe(
+        self, state: PursuitState | None = None, obstacles: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray:
+        """Observations (B, num_p, obs_dim) float32 of ``state`` (default: current).
+
+        ``obstacles``: the pursuers' signed distances and normals, when already known.
+        """
+        s = self.state if state is None else state
+        P, B = self.num_p, s.pos.shape[0]
+        pos_p, head_p = s.pos[:, :P], s.heading[:, :P]
+        d, sn, cs = _relative(pos_p, head_p, s.pos)  # (B, P, N)
+        mask = d <= self.cfg.players.reception_range
+        mask[:, :, P:] &= ~s.captured[:, None, :]
+        od, on = obstacles if obstacles is not None else signed_distances(pos_p, self.geometry)
+        o_d, o_n = pick_nearest(od, on)
+        hx, hy = np.cos(head_p), np.sin(head_p)
+        tx, ty = -o_n[..., 0], -o_n[..., 1]  # towards the obstacle
+        out = np.empty((B, P, self.num_e + P, ENTITY_FEATURES), dtype=np.float32)
+        rows, ents = self._entity_index
+        m = mask[:, rows, ents]
+        out[:, :, self._entity_slots, 0] = m
+        out[:, :, self._entity_slots, 1] = d[:, rows, ents] * (m / DIST_SCALE)
+        out[:, :, self._entity_slots, 2] = sn[:, rows, ents] * m
+        out[:, :, self._entity_slots, 3] = cs[:, rows, ents] * m
+        out[:, :, self.num_e, 0] = 1.0
+        out[:, :, self.num_e, 1] = o_d / DIST_SCALE
+        out[:, :, self.num_e, 2] = hx * ty - hy * tx
+        out[:, :, self.num_e, 3] = hx * tx + hy * ty
+        return out.reshape(B, P, self.obs_dim)
+
+    # ------------------------------------------------------------------- step
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Advance every environment one step; see the module docstring."""
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (self.num_envs, self.num_p):
+            raise ValueError(f"actions must have shape {(self.num_envs, self.num_p)}, got {actions.shape}")
+        cfg, s, P = self.cfg, self.state, self.num_p
+        dt = cfg.dt
+        task, rw = cfg.task, cfg.task.reward
+
+        # Pursuers: turn at most 45 degrees, then move at constant speed.
+        head_p = s.heading[:, :P] + np.clip(np.nan_to_num(actions), -1.0, 1.0) * (np.pi / 4)
+        head_p = np.arctan2(np.sin(head_p), np.cos(head_p))
+        step_p = cfg.players.velocity_p * dt
+        pos_p = s.pos[:, :P] + step_p * np.stack([np.cos(head_p), np.sin(head_p)], -1)
+        pos_p[..., 0] = np.clip(pos_p[..., 0], 0.0, self.geometry.width)
+        pos_p[..., 1] = np.clip(pos_p[..., 1], 0.0, self.geometry.height)
+
+        # Evaders: escape policy, wandering when calm.
+        active = ~s.captured
+        pos_e, head_e = s.pos[:, P:], s.heading[:, P:]
+        flee, calm = escape_directions(
+            pos_e, head_e, pos_p, active, self.geometry, cfg.players.reception_range, task.capture_range, self.escape
+        )
+        lo, hi = self.escape.wander_steps
+        redraw = calm & (s.wander_left <= 0)
+        turn = self.rng.uniform(-self.escape.wander_turn, self.escape.wander_turn, size=head_e.shape)
+        span = self.rng.integers(lo, hi + 1, size=head_e.shape)
+        wander_heading = np.where(redraw, head_e + turn, s.wander_heading)
+        wander_left = np.where(calm, np.where(redraw, span, s.wander_left) - 1, 0)
+        new_head_e = np.where(active, np.where(calm, wander_heading, flee), head_e)
+        pos_e = move_evaders(pos_e, new_head_e, cfg.players.velocity_e * dt, active, self.geometry, self.escape)
+
+        pos = np.concatenate([pos_p, pos_e], 1)
+        heading = np.concatenate([head_p, new_head_e], 1)
+
+        # Capture and collision.
+        dist_pe = self._evader_distances(pos)  # (B, E)
+        newly = active & (dist_pe < task.capture_range)
+        captured = s.captured | newly
+        px, py = pos_p[..., 0], pos_p[..., 1]
+        i, j = self._pairs
+        pair_d = np.sqrt((px[:, i] - px[:, j]) ** 2 + (py[:, i] - py[:, j]) ** 2)  # (B, pairs)
+        pair_hit = pair_d < task.collision_distance
+        p_obst = signed_distances(pos_p, self.geometry)
+        collided = p_obst[0].min(-1) < task.safe_radius  # (B, P)
+        collided = collided | ((pair_hit.astype(np.int64) @ self._pair_member) > 0)
+        any_collision = collided.any(-1)
+
+        # Shared reward.
+        approach = ((s.prev_dist - dist_pe) * active).sum(-1) / rw.approach_scale
+        reward = rw.capture * newly.sum(-1) + rw.approach * approach + rw.collision * any_collision
+        if rw.proximity.enabled:
+            for lo_b, hi_b, pen in rw.proximity.bands:
+                reward = reward + pen * ((pair_d >= lo_b) & (pair_d < hi_b)).sum(-1)
+
+        t = s.t + 1
+        ep_return = s.ep_return + reward
+        ep_collided = s.ep_collided | any_collision
+        success = captured.all(-1)
+        reason = np.full(self.num_envs, RUNNING, dtype=np.int8)
+        reason[t >= task.task_horizon] = TIMEOUT
+        reason[success] = CAPTURED
+        if task.collision_ends_episode:
+            reason[any_collision] = COLLISION
+        done = reason != RUNNING
+
+        self.state = PursuitState(
+            pos=pos,
+            heading=heading,
+            captured=captured,
+            t=t,
+            ep_return=ep_return,
+            ep_collided=ep_collided,
+            wander_heading=wander_heading,
+            wander_left=wander_left,
+            prev_dist=np.where(captured, 0.0, dist_pe),
+        )
+        obs = self.observe(obstacles=p_obst)
+        info: dict[str, Any] = {
+            "done_reason": reason,
+            "episode_length": t.copy(),
+            "episode_return": ep_return.copy(),
+            "episode_collided": ep_collided.copy(),
+            "episode_captured": captured.sum(-1),
+            "collided": collided,
+            "captured_now": newly,
+            "final_obs": obs.copy(),
+        }
+        if done.any():
+            self.final_state = self.state.copy()
+            self._reset_envs(np.flatnonzero(done))
+            obs[done] = self.observe(self._subset(done))
+        self._obs = obs
+        rewards = np.repeat(reward[:, None], P, axis=1).astype(np.float32)
+        return obs, rewards, done, info
+
+    def _subset(self, mask: np.ndarray) -> PursuitState:
+        return PursuitState(**{k: v[mask] for k, v in self.state.__dict__.items()})
+
+    def _reset_envs(self, idx: np.ndarray) -> None:
+        fresh = self._fresh_state(len(idx))
+        for k, v in fresh.__dict__.items():
+            getattr(self.state, k)[idx] = v
