@@ -239,9 +239,13 @@ def _parse(tp: Any, value: Any, path: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(path, f"must be a number, got {_describe(value)}")
-        if not math.isfinite(value):
+        try:
+            number = float(value)
+        except OverflowError:  # a JSON integer literal beyond the float range
+            raise ConfigError(path, "must be finite, got an integer too large for a float") from None
+        if not math.isfinite(number):
             raise ConfigError(path, f"must be finite, got {value!r}")
-        return float(value)
+        return number
     if tp is str:
         if not isinstance(value, str) or not value:
             raise ConfigError(path, f"must be a non-empty string, got {_describe(value)}")
@@ -256,7 +260,7 @@ def _parse_tagged(options: tuple[Any, ...], value: Any, path: str) -> Any:
         raise ConfigError(path, f"must be an object, got {_describe(value)}")
     if "type" not in value:
         raise ConfigError(_join(path, "type"), f"missing key (one of {sorted(tags)})")
-    if value["type"] not in tags:
+    if not isinstance(value["type"], str) or value["type"] not in tags:
         raise ConfigError(_join(path, "type"), f"must be one of {sorted(tags)}, got {_describe(value['type'])}")
     return _parse(tags[value["type"]], value, path)
 
