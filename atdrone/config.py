@@ -352,18 +352,28 @@ def parse_task(document: Any) -> TaskConfig:
     return cfg
 
 
+def parse_document(schema: Any, document: Any, path: str = "") -> Any:
+    """Validate JSON data against a dataclass ``schema``; errors name the JSON path."""
+    return _parse(schema, document, path)
+
+
+def read_document(name_or_path: str | Path, kind: str, names: tuple[str, ...] = ()) -> Any:
+    """Parse the JSON of configs/<kind>/<name>.json for a known name, else of a path."""
+    text = str(name_or_path)
+    path = CONFIG_DIR / kind / f"{text}.json" if text in names else Path(text)
+    if not path.is_file():
+        known = f" (known: {', '.join(names)})" if names else ""
+        raise ConfigError("", f"no {kind[:-1]} named {text!r}{known} and no such file")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError("", f"{path} is not valid JSON: {exc}") from None
+
+
 def load_task(name_or_path: str | Path | Mapping[str, Any] | TaskConfig) -> TaskConfig:
     """Load a task by paper name, JSON path or mapping; raise ConfigError when invalid."""
     if isinstance(name_or_path, TaskConfig):
         return name_or_path
     if isinstance(name_or_path, Mapping):
         return parse_task(name_or_path)
-    text = str(name_or_path)
-    path = CONFIG_DIR / "tasks" / f"{text}.json" if text in TASK_NAMES else Path(text)
-    if not path.is_file():
-        raise ConfigError("", f"no task named {text!r} (known: {', '.join(TASK_NAMES)}) and no such file")
-    try:
-        document = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ConfigError("", f"{path} is not valid JSON: {exc}") from None
-    return parse_task(document)
+    return parse_task(read_document(name_or_path, "tasks", TASK_NAMES))

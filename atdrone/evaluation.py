@@ -1,0 +1,160 @@
+"""The AT-Drone evaluation protocol (paper section 3.3, SPEC section 9).
+
+A learner fills the num_ctrl learner slots, a zoo fills the rest, and N episodes run
+in parallel on BatchedPursuit, one episode per environment (so short episodes are not
+over-counted). From the raw episode records:
+  SUC  % of episodes in which every evader was captured;
+  COL  % of episodes with a collision (drone-drone or drone-obstacle);
+  AST  mean length in steps of the successful episodes (NaN when none succeeded);
+  REW  mean team return per episode.
+With several seeds each metric is reported as mean and std (population std) over seeds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from atdrone.config import TaskConfig, load_task
+from atdrone.envs.core import CAPTURED, DONE_REASONS, BatchedPursuit
+from atdrone.policies.base import Policy
+from atdrone.policies.zoo import Zoo, load_zoo
+from atdrone.teams import Match
+
+METRICS = ("SUC", "COL", "AST", "REW")
+MAX_ENVS = 1024
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Metrics of one learner x task x zoo, per seed and aggregated, with the raw records."""
+
+    task: str
+    zoo: str
+    learner: str
+    per_seed: pd.DataFrame  # index seed, columns METRICS
+    records: pd.DataFrame  # one row per episode
+
+    @property
+    def mean(self) -> dict[str, float]:
+        return {m: float(self.per_seed[m].mean()) for m in METRICS}
+
+    @property
+    def std(self) -> dict[str, float]:
+        return {m: float(self.per_seed[m].std(ddof=0)) for m in METRICS}
+
+    def summary(self) -> dict[str, object]:
+        row: dict[str, object] = {"task": self.task, "zoo": self.zoo, "learner": self.learner}
+        row["episodes"] = len(self.records)
+        row["seeds"] = len(self.per_seed)
+        for m in METRICS:
+            row[m] = self.mean[m]
+            row[f"{m}_std"] = self.std[m]
+        return row
+
+
+def metrics(records: pd.DataFrame) -> dict[str, float]:
+    """SUC, COL, AST, REW of a set of episode records."""
+    success = records["success"].to_numpy(bool)
+    return {
+        "SUC": 100.0 * success.mean(),
+        "COL": 100.0 * records["collided"].to_numpy(bool).mean(),
+        "AST": float(records["length"][success].mean()) if success.any() else float("nan"),
+        "REW": float(records["return"].mean()),
+    }
+
+
+def run_episodes(
+    learner: Policy,
+    task: TaskConfig | str,
+    partners: Zoo | Sequence[Policy],
+    episodes: int,
+    seed: int = 0,
+    max_envs: int = MAX_ENVS,
+    on_progress: Callable[[int], None] | None = None,
+) -> pd.DataFrame:
+    """Play ``episodes`` episodes of ``learner`` with ``partners``; one record per episode."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    cfg = load_task(task)
+    chunks = []
+    for c, start in enumerate(range(0, episodes, max_envs)):
+        n = min(max_envs, episodes - start)
+        core = BatchedPursuit(cfg, num_envs=n, seed=_derive(seed, c, 0))
+        match = Match(core, partners, seed=_derive(seed, c, 1))
+        match.reset()
+        learner.reset(np.ones(n, dtype=bool))
+        finished = np.zeros(n, dtype=bool)
+        rec = {k: np.zeros(n, dtype=t) for k, t in _FIELDS.items()}
+        teams = np.empty(n, dtype=object)
+        for _ in range(cfg.task.task_horizon + 1):
+            batch = match.learner_batch()
+            actions = learner.act(batch).reshape(n, match.num_ctrl)
+            _, _, dones, info = match.step(actions)
+            learner.reset(dones)
+            new = dones & ~finished
+            if new.any():
+                idx = np.flatnonzero(new)
+                rec["reason"][idx] = info["done_reason"][idx]
+                rec["length"][idx] = info["episode_length"][idx]
+                rec["return"][idx] = info["episode_return"][idx]
+                rec["collided"][idx] = info["episode_collided"][idx]
+                rec["captured"][idx] = info["episode_captured"][idx]
+                for i in idx:
+                    members = info["team"]["partner_members"][i]
+                    teams[i] = ",".join(match.partner_names[m] for m in members)
+                rec["learner_slots"][idx] = [",".join(map(str, s)) for s in info["team"]["learner_slots"][idx]]
+                finished |= new
+                if on_progress is not None:
+                    on_progress(len(idx))
+            if finished.all():
+                break
+        frame = pd.DataFrame(rec)
+        frame.insert(0, "episode", np.arange(start, start + n))
+        frame["partners"] = teams
+        chunks.append(frame)
+    out = pd.concat(chunks, ignore_index=True)
+    out["success"] = out["reason"] == CAPTURED
+    out["outcome"] = np.array(DONE_REASONS)[out["reason"].to_numpy()]
+    out.insert(1, "seed", seed)
+    return out
+
+
+_FIELDS = {
+    "reason": np.int8,
+    "length": np.int64,
+    "return": np.float64,
+    "collided": bool,
+    "captured": np.int64,
+    "learner_slots": object,
+}
+
+
+def _derive(seed: int, chunk: int, stream: int) -> int:
+    """A distinct, reproducible seed per (seed, chunk, stream)."""
+    return int(np.random.SeedSequence([seed, chunk, stream]).generate_state(1)[0])
+
+
+def evaluate(
+    learner: Policy,
+    task: TaskConfig | str,
+    zoo: Zoo | str,
+    episodes: int = 500,
+    seeds: Sequence[int] = (0,),
+    on_progress: Callable[[int], None] | None = None,
+) -> Evaluation:
+    """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated."""
+    cfg = load_task(task)
+    zoo = load_zoo(zoo) if isinstance(zoo, str) else zoo
+    partners = zoo.policies()
+    records = pd.concat(
+        [run_episodes(learner, cfg, partners, episodes, seed=s, on_progress=on_progress) for s in seeds],
+        ignore_index=True,
+    )
+    per_seed = pd.DataFrame([{"seed": s, **metrics(g)} for s, g in records.groupby("seed")]).set_index("seed")
+    return Evaluation(
+        task=cfg.name, zoo=zoo.name, learner=getattr(learner, "name", "learner"), per_seed=per_seed, records=records
+    )

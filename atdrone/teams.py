@@ -1,0 +1,127 @@
+"""Matches: learners and zoo partners sharing the pursuer slots of a BatchedPursuit.
+
+For every episode of every environment a :class:`Match` draws which pursuer slots the
+learners fill (shuffled) and which partner member fills each remaining slot (drawn
+from the zoo, uniformly unless a sampler is given), steps the partners itself, and
+exposes the learners' slots only: observations (B, num_ctrl, obs_dim) and actions
+(B, num_ctrl). ``info["team"]`` records the team of each episode that just ended.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from atdrone.envs.core import BatchedPursuit
+from atdrone.policies.base import DroneBatch, Policy
+from atdrone.policies.zoo import Zoo
+
+# (rng, n) -> (n, num_unctrl) member indices for n fresh episodes
+PartnerSampler = Callable[[np.random.Generator, int], np.ndarray]
+
+
+class Match:
+    """Learners + partners on one batched core (see the module docstring)."""
+
+    def __init__(
+        self,
+        core: BatchedPursuit,
+        partners: Zoo | Sequence[Policy],
+        seed: int | None = None,
+        num_ctrl: int | None = None,
+        shuffle_slots: bool = True,
+        sampler: PartnerSampler | None = None,
+    ) -> None:
+        self.core = core
+        self.partners: list[Policy] = partners.policies() if isinstance(partners, Zoo) else list(partners)
+        self.partner_names = [p.name for p in self.partners]
+        self.num_ctrl = core.cfg.players.num_ctrl if num_ctrl is None else num_ctrl
+        self.num_unctrl = core.num_p - self.num_ctrl
+        if not 0 < self.num_ctrl <= core.num_p:
+            raise ValueError(f"num_ctrl must be in 1..{core.num_p}, got {self.num_ctrl}")
+        if self.num_unctrl and not self.partners:
+            raise ValueError(f"{self.num_unctrl} partner slots but no partner policies")
+        self.shuffle_slots = shuffle_slots
+        self.sampler = sampler or self._uniform
+        self.rng = np.random.default_rng(seed)
+        B = core.num_envs
+        self.slots = np.tile(np.arange(core.num_p), (B, 1))  # learners first, then partners
+        self.members = np.zeros((B, self.num_unctrl), dtype=np.intp)
+        self._rows = np.arange(B)[:, None]
+        self._obs: np.ndarray | None = None
+
+    def _uniform(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        return rng.integers(len(self.partners), size=(n, self.num_unctrl))
+
+    @property
+    def learner_slots(self) -> np.ndarray:
+        """(B, num_ctrl) pursuer slots of the learners this episode."""
+        return self.slots[:, : self.num_ctrl]
+
+    @property
+    def partner_slots(self) -> np.ndarray:
+        """(B, num_unctrl) pursuer slots of the partners this episode."""
+        return self.slots[:, self.num_ctrl :]
+
+    def _assign(self, envs: np.ndarray) -> None:
+        n, P = len(envs), self.core.num_p
+        if self.shuffle_slots:
+            self.slots[envs] = np.argsort(self.rng.random((n, P)), axis=1)
+        if self.num_unctrl:
+            self.members[envs] = self.sampler(self.rng, n)
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Reset every environment and draw new teams; learner observations (B, num_ctrl, D)."""
+        if seed is not None:
+            self.rng = np.random.default_rng([seed, 1])
+        self._obs = self.core.reset(seed=seed)
+        self._assign(np.arange(self.core.num_envs))
+        return self.learner_view(self._obs)
+
+    def learner_view(self, obs: np.ndarray) -> np.ndarray:
+        return obs[self._rows, self.learner_slots]
+
+    def learner_batch(self) -> DroneBatch:
+        """The learners' drones as a DroneBatch, env-major (for policies that drive learners)."""
+        if self._obs is None:
+            raise RuntimeError("call reset() first")
+        env = np.repeat(np.arange(self.core.num_envs), self.num_ctrl)
+        slot = self.learner_slots.reshape(-1)
+        return DroneBatch(obs=self._obs[env, slot], env=env, slot=slot, core=self.core)
+
+    def partner_actions(self, actions: np.ndarray) -> None:
+        """Fill the partner slots of ``actions`` (B, num_p) from the partner policies."""
+        assert self._obs is not None
+        for m, policy in enumerate(self.partners):
+            env, j = np.nonzero(self.members == m)
+            if len(env):
+                slot = self.partner_slots[env, j]
+                actions[env, slot] = policy.act(DroneBatch(self._obs[env, slot], env, slot, self.core))
+
+    def step(self, learner_actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step with the learners' actions (B, num_ctrl); partners act themselves.
+
+        Returns learner observations, learner rewards (B, num_ctrl), dones (B,) and the
+        core's info, with ``final_obs`` in the learners' view and ``team``: the slots
+        and partner members of the episodes that were played this step.
+        """
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        learner_actions = np.asarray(learner_actions, dtype=np.float64)
+        B = self.core.num_envs
+        if learner_actions.shape != (B, self.num_ctrl):
+            raise ValueError(f"learner actions must have shape {(B, self.num_ctrl)}, got {learner_actions.shape}")
+        actions = np.empty((B, self.core.num_p))
+        actions[self._rows, self.learner_slots] = learner_actions
+        self.partner_actions(actions)
+        obs, rewards, dones, info = self.core.step(actions)
+        info["final_obs"] = self.learner_view(info["final_obs"])
+        info["team"] = {"learner_slots": self.learner_slots.copy(), "partner_members": self.members.copy()}
+        if dones.any():
+            for policy in self.partners:
+                policy.reset(dones)
+            self._assign(np.flatnonzero(dones))
+        self._obs = obs
+        return self.learner_view(obs), rewards[:, : self.num_ctrl], dones, info
