@@ -29,6 +29,8 @@ class EscapeParams:
     evader_radius: float = 0.1
     slip_range: float = 0.5
     follow_range: float = 0.3
+    follow_drift: float = 0.5
+    inertia: float = 0.25
     body_margin: float = 0.05
     wander_turn: float = np.pi / 4
     wander_steps: tuple[int, int] = (10, 15)
@@ -81,10 +83,10 @@ def escape_directions(
     )
     ob_push = np.maximum(0.0, 1.0 / np.maximum(obs_d, 1e-2) - 1.0 / p.repulsion_range)
     g = p.repulsion_gain
-    vx = fx + g * ((ob_push * obs_n[..., 0]).sum(-1) + (ee_push * rx / rl).sum(-1))
-    vy = fy + g * ((ob_push * obs_n[..., 1]).sum(-1) + (ee_push * ry / rl).sum(-1))
+    ee_x, ee_y = g * (ee_push * rx / rl).sum(-1), g * (ee_push * ry / rl).sum(-1)
 
-    # Slip through the gap between the two nearest pursuers when both are close.
+    # Intent: away from the pursuers, or through the gap between the two nearest ones.
+    ix, iy = fx, fy
     if pos_p.shape[1] >= 2:
         i1 = d.argmin(-1)[..., None]
         d_rest = d.copy()
@@ -94,19 +96,34 @@ def escape_directions(
         ax, ay = np.take_along_axis(dx, i1, -1)[..., 0], np.take_along_axis(dy, i1, -1)[..., 0]
         bx, by = np.take_along_axis(dx, i2, -1)[..., 0], np.take_along_axis(dy, i2, -1)[..., 0]
         slip = (d2nd < p.slip_range) & (_norm(ax - bx, ay - by) > 2 * capture_range)
-        # (pa + pb) / 2 - pos_e, with pa = pos_e - (ax, ay)
-        vx = np.where(slip, -(ax + bx) / 2, vx)
-        vy = np.where(slip, -(ay + by) / 2, vy)
+        # midpoint (pa + pb) / 2 - pos_e, with pa = pos_e - (ax, ay)
+        mx, my = -(ax + bx) / 2, -(ay + by) / 2
+        m = np.maximum(_norm(mx, my), 1e-12)
+        ix, iy = np.where(slip, mx / m, ix), np.where(slip, my / m, iy)
 
-    # Follow the nearest wall or obstacle instead of running into it.
+    # Free running: intent plus repulsion from obstacles, walls and other evaders.
+    vx = ix + g * (ob_push * obs_n[..., 0]).sum(-1) + ee_x
+    vy = iy + g * (ob_push * obs_n[..., 1]).sum(-1) + ee_y
+
+    # Wall following: when the intent runs into the nearest obstacle, run along it
+    # (keeping the current sense of travel when the intent is square on) and drift
+    # off it gently, instead of letting the repulsion turn the evader back.
     near_d, near_n = pick_nearest(obs_d, obs_n)
     nx, ny = near_n[..., 0], near_n[..., 1]
-    into = vx * nx + vy * ny
+    into = ix * nx + iy * ny
     follow = (near_d < p.follow_range) & (into < 0)
-    sx, sy = vx - into * nx, vy - into * ny
-    flat = (np.abs(sx) + np.abs(sy)) < 1e-9
-    sx, sy = np.where(flat, -ny, sx), np.where(flat, nx, sy)
-    vx, vy = np.where(follow, sx, vx), np.where(follow, sy, vy)
+    tx, ty = -ny, nx
+    along = ix * tx + iy * ty
+    sense = np.where(
+        np.abs(along) > 1e-6, np.sign(along), np.where(np.cos(heading_e) * tx + np.sin(heading_e) * ty >= 0, 1.0, -1.0)
+    )
+    off = p.follow_drift * (p.follow_range - near_d) / p.follow_range
+    vx = np.where(follow, sense * tx + off * nx + ee_x, vx)
+    vy = np.where(follow, sense * ty + off * ny + ee_y, vy)
+
+    # Inertia: near a balance of pushes keep going rather than flip back and forth.
+    vx = vx + p.inertia * np.cos(heading_e)
+    vy = vy + p.inertia * np.sin(heading_e)
 
     still = (np.abs(vx) + np.abs(vy)) < 1e-12
     heading = np.where(still, heading_e, np.arctan2(vy, vx))
