@@ -115,9 +115,58 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------- train
+def add_train(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "train",
+        help="train a policy (self-play IPPO, MAPPO or best response) from a config",
+        description="Train locally in one process from configs/train/*.json; tracked in MLflow "
+        "(MLFLOW_TRACKING_URI, default sqlite:///mlflow.db). The run lives in <out_dir>/<name>/.",
+    )
+    p.add_argument("config", help="training config JSON (e.g. configs/train/sp_quick.json)")
+    p.add_argument("--resume", action="store_true", help="continue the run from its last checkpoint")
+    p.add_argument("--seed", type=int, default=None, help="override the config's seed")
+    p.add_argument("--name", default=None, help="override the run name")
+    p.add_argument("--total-env-steps", type=_positive_int, default=None, help="override the step budget")
+    p.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time")
+    p.add_argument("--out-dir", default=None, help="override where runs are written (default runs/)")
+    p.add_argument("--device", default=None, help="auto (default), cpu or cuda for the PPO update")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def run_train(args: argparse.Namespace) -> int:
+    import logging
+
+    from atdrone.algos.trainer import load_train_config, run_training
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    cfg = load_train_config(
+        args.config,
+        seed=args.seed,
+        name=args.name,
+        total_env_steps=args.total_env_steps,
+        max_minutes=args.max_minutes,
+        out_dir=args.out_dir,
+        device=args.device,
+    )
+    try:
+        trainer = run_training(cfg, resume=args.resume, progress=not args.no_progress)
+    except FileExistsError as exc:
+        print(f"atdrone train: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    last = trainer.history[-1] if trainer.history else {}
+    evals = ", ".join(f"{k[5:]} {last[k]:.1f}" for k in ("eval/SUC", "eval/COL", "eval/AST", "eval/REW") if k in last)
+    print(f"{cfg.name}: {trainer.env_steps} env steps; last evaluation: {evals or 'none'}")
+    print(f"checkpoint: {trainer.run_dir / 'last.pt'}; curve: {trainer.run_dir / 'curve.png'}")
+    print(f"MLflow run {trainer.run_id} (browse: mlflow ui --backend-store-uri sqlite:///mlflow.db)")
+    return 0
+
+
 COMMANDS: dict[str, Command] = {
     "render": Command(add_render, run_render),
     "demo": Command(add_demo, run_demo),
+    "train": Command(add_train, run_train),
 }
 
 

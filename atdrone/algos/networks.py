@@ -1,0 +1,151 @@
+"""Actor-critic networks of SPEC section 10, in torch.
+
+Every (mask, distance, sin, cos) entity block of the observation (layout of
+:mod:`atdrone.envs.core`) goes through an encoder for its kind (evader, obstacle,
+teammate); evaders and teammates are mean-pooled over the visible ones, so one
+network serves any number of them (4p2e and 4p3e alike). Two hidden layers of 128
+follow. The actor outputs the mean of a Gaussian over the pre-squash action u; the
+action is tanh(u) in [-1, 1]; the log-std is a free parameter. The critic is a
+separate network of the same shape. The MAPPO critic adds the global state, pooled
+the same way (pursuers and evaders in absolute arena coordinates).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from atdrone.envs.core import ENTITY_FEATURES, PursuitState
+from atdrone.envs.geometry import Geometry
+
+GLOBAL_PURSUER_FEATURES = 4  # x / width, y / height, sin heading, cos heading
+GLOBAL_EVADER_FEATURES = 3  # x / width, y / height, active
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Architecture: entity embedding width, hidden width, initial log-std."""
+
+    entity_dim: int = 64
+    hidden: int = 128
+    init_log_std: float = -0.5
+    centralised_critic: bool = False
+
+
+def _layer(n_in: int, n_out: int, gain: float = math.sqrt(2)) -> nn.Linear:
+    layer = nn.Linear(n_in, n_out)
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def split_entities(obs: torch.Tensor, num_e: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(..., obs_dim) -> evader (..., E, 4), obstacle (..., 4), teammate (..., P-1, 4) blocks."""
+    blocks = obs.reshape(*obs.shape[:-1], -1, ENTITY_FEATURES)
+    return blocks[..., :num_e, :], blocks[..., num_e, :], blocks[..., num_e + 1 :, :]
+
+
+def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of x (..., M, F) over the M entities where mask (..., M) is 1; zeros when none."""
+    m = mask.unsqueeze(-1)
+    return (x * m).sum(-2) / m.sum(-2).clamp(min=1.0)
+
+
+class EntityTrunk(nn.Module):
+    """Per-entity encoders, pooling and two hidden layers: obs -> features (hidden)."""
+
+    def __init__(self, cfg: NetConfig, extra: int = 0) -> None:
+        super().__init__()
+        d = cfg.entity_dim
+        self.evader = nn.Sequential(_layer(3, d), nn.Tanh())
+        self.obstacle = nn.Sequential(_layer(3, d), nn.Tanh())
+        self.mate = nn.Sequential(_layer(3, d), nn.Tanh())
+        self.body = nn.Sequential(
+            _layer(3 * d + 2 + extra, cfg.hidden), nn.Tanh(), _layer(cfg.hidden, cfg.hidden), nn.Tanh()
+        )
+
+    def forward(self, obs: torch.Tensor, num_e: int, extra: torch.Tensor | None = None) -> torch.Tensor:
+        ev, ob, tm = split_entities(obs, num_e)
+        e = masked_mean(self.evader(ev[..., 1:]), ev[..., 0])
+        t = masked_mean(self.mate(tm[..., 1:]), tm[..., 0])
+        o = self.obstacle(ob[..., 1:])
+        counts = torch.stack([ev[..., 0].mean(-1), tm[..., 0].mean(-1)], -1)  # visible fractions
+        parts = [e, o, t, counts] if extra is None else [e, o, t, counts, extra]
+        return self.body(torch.cat(parts, -1))
+
+
+class GlobalEncoder(nn.Module):
+    """Pooled encoding of the global state for the MAPPO critic."""
+
+    def __init__(self, cfg: NetConfig) -> None:
+        super().__init__()
+        self.pursuer = nn.Sequential(_layer(GLOBAL_PURSUER_FEATURES, cfg.entity_dim), nn.Tanh())
+        self.evader = nn.Sequential(_layer(GLOBAL_EVADER_FEATURES - 1, cfg.entity_dim), nn.Tanh())
+        self.out_dim = 2 * cfg.entity_dim
+
+    def forward(self, state: torch.Tensor, num_p: int) -> torch.Tensor:
+        p = state[..., : num_p * GLOBAL_PURSUER_FEATURES].reshape(*state.shape[:-1], num_p, GLOBAL_PURSUER_FEATURES)
+        e = state[..., num_p * GLOBAL_PURSUER_FEATURES :].reshape(*state.shape[:-1], -1, GLOBAL_EVADER_FEATURES)
+        pooled_p = self.pursuer(p).mean(-2)
+        pooled_e = masked_mean(self.evader(e[..., :2]), e[..., 2])
+        return torch.cat([pooled_p, pooled_e], -1)
+
+
+def global_state(state: PursuitState, geometry: Geometry, num_p: int) -> np.ndarray:
+    """(B, state_dim) float32: every pursuer's (x, y, sin, cos) then every evader's (x, y, active)."""
+    s, P = state, num_p
+    scale = np.array([geometry.width, geometry.height])
+    pur = np.concatenate(
+        [s.pos[:, :P] / scale, np.sin(s.heading[:, :P])[..., None], np.cos(s.heading[:, :P])[..., None]], -1
+    )
+    eva = np.concatenate([s.pos[:, P:] / scale, (~s.captured)[..., None]], -1)
+    B = s.pos.shape[0]
+    return np.concatenate([pur.reshape(B, -1), eva.reshape(B, -1)], -1).astype(np.float32)
+
+
+class ActorCritic(nn.Module):
+    """Tanh-Gaussian actor and separate critic over the entity observation."""
+
+    def __init__(self, cfg: NetConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg or NetConfig()
+        self.actor = EntityTrunk(self.cfg)
+        self.mu = _layer(self.cfg.hidden, 1, gain=0.01)
+        self.log_std = nn.Parameter(torch.full((1,), self.cfg.init_log_std))
+        self.global_encoder = GlobalEncoder(self.cfg) if self.cfg.centralised_critic else None
+        extra = self.global_encoder.out_dim if self.global_encoder is not None else 0
+        self.critic = EntityTrunk(self.cfg, extra=extra)
+        self.value_head = _layer(self.cfg.hidden, 1, gain=1.0)
+
+    def architecture(self) -> dict[str, object]:
+        return {"class": "ActorCritic", **asdict(self.cfg)}
+
+    def dist(self, obs: torch.Tensor, num_e: int) -> torch.distributions.Normal:
+        """Gaussian over the pre-squash action u, shape (...)."""
+        mu = self.mu(self.actor(obs, num_e)).squeeze(-1)
+        return torch.distributions.Normal(mu, self.log_std.exp().expand_as(mu))
+
+    def value(self, obs: torch.Tensor, num_e: int, state: torch.Tensor | None = None, num_p: int = 0) -> torch.Tensor:
+        extra = None
+        if self.global_encoder is not None:
+            if state is None:
+                raise ValueError("the centralised critic needs the global state")
+            extra = self.global_encoder(state, num_p)
+        return self.value_head(self.critic(obs, num_e, extra)).squeeze(-1)
+
+
+def squash_log_prob(dist: torch.distributions.Normal, u: torch.Tensor) -> torch.Tensor:
+    """log pi(a) of a = tanh(u): the Gaussian log-density of u minus log(1 - tanh(u)^2)."""
+    log_det = 2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))  # = log(1 - tanh(u)^2), stable
+    return dist.log_prob(u) - log_det
+
+
+def action_log_prob(dist: torch.distributions.Normal, action: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """log pi(a) for an action given in [-1, 1] (e.g. from another policy), clamped off the bounds."""
+    a = action.clamp(-1.0 + eps, 1.0 - eps)
+    return squash_log_prob(dist, torch.atanh(a))

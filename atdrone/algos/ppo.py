@@ -1,0 +1,169 @@
+"""PPO for continuous steering: the config schema, GAE and the clipped-surrogate update.
+
+The update is a pure step over plain inputs: a model, its optimizer and a
+:class:`~atdrone.rollout.Fragment` of arrays, so it can run in another process (a
+Ray learner) than the rollout. It runs on the device of the model (a GPU when given).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from atdrone.algos.networks import ActorCritic, squash_log_prob
+from atdrone.config import ConfigError, parse_document
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyperparameters. Defaults meet the learning and throughput bars on 2 CPU cores.
+
+    num_envs x rollout_steps environment steps per update (each gives one sample per
+    learner drone); epochs passes over them in minibatches of minibatch_size samples.
+    """
+
+    num_envs: int = 64
+    rollout_steps: int = 128
+    epochs: int = 2
+    minibatch_size: int = 4096
+    lr: float = 3e-4
+    lr_schedule: Literal["constant", "linear"] = "linear"
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip: float = 0.2
+    vf_coef: float = 0.5
+    ent_coef: float = 0.003
+    max_grad_norm: float = 0.5
+    normalize_advantages: bool = True
+    entity_dim: int = 64
+    hidden: int = 128
+    init_log_std: float = -0.5
+
+
+PRESETS: dict[str, PPOConfig] = {
+    "default": PPOConfig(),
+    # The paper's values (SPEC section 10): batch 1024, minibatch 256, 20 epochs.
+    "paper": PPOConfig(
+        num_envs=8,
+        rollout_steps=128,
+        epochs=20,
+        minibatch_size=256,
+        lr=3e-4,
+        gamma=0.99,
+        gae_lambda=0.95,
+        vf_coef=1.0,
+        ent_coef=0.01,
+        lr_schedule="constant",
+        hidden=128,
+    ),
+}
+
+
+def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", path: str = "ppo") -> PPOConfig:
+    """A validated PPOConfig: ``preset`` values overridden by ``document``'s keys."""
+    if preset not in PRESETS:
+        raise ConfigError(f"{path}.preset", f"must be one of {sorted(PRESETS)}, got {preset!r}")
+    if not document:
+        return PRESETS[preset]
+    parse_document(PPOConfig, {**_as_dict(PRESETS[preset]), **document}, path)  # type/unknown-key check
+    cfg = replace(PRESETS[preset], **document)
+    for name in ("num_envs", "rollout_steps", "epochs", "minibatch_size", "entity_dim", "hidden"):
+        if getattr(cfg, name) < 1:
+            raise ConfigError(f"{path}.{name}", f"must be >= 1, got {getattr(cfg, name)}")
+    for name in ("lr", "clip", "max_grad_norm"):
+        if getattr(cfg, name) <= 0:
+            raise ConfigError(f"{path}.{name}", f"must be > 0, got {getattr(cfg, name)}")
+    for name in ("gamma", "gae_lambda"):
+        if not 0 <= getattr(cfg, name) <= 1:
+            raise ConfigError(f"{path}.{name}", f"must be in [0, 1], got {getattr(cfg, name)}")
+    return cfg
+
+
+def _as_dict(cfg: PPOConfig) -> dict[str, Any]:
+    return dict(cfg.__dict__)
+
+
+def gae(
+    rewards: np.ndarray, values: np.ndarray, dones: np.ndarray, last_values: np.ndarray, gamma: float, lam: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised advantage estimates and returns, vectorised over all but time.
+
+    rewards, values (T, ...); dones (T, ...) true where the episode ended at that step
+    (the next value is then not bootstrapped; timeouts fold their bootstrap into the
+    reward beforehand); last_values (...) the value after the last step.
+    """
+    T = rewards.shape[0]
+    adv = np.zeros_like(rewards, dtype=np.float32)
+    running = np.zeros_like(last_values, dtype=np.float32)
+    next_value = last_values
+    for t in range(T - 1, -1, -1):
+        live = 1.0 - dones[t]
+        delta = rewards[t] + gamma * next_value * live - values[t]
+        running = delta + gamma * lam * live * running
+        adv[t] = running
+        next_value = values[t]
+    return adv, adv + values
+
+
+def learning_rate(cfg: PPOConfig, progress: float) -> float:
+    """The learning rate at ``progress`` in [0, 1] of the run."""
+    if cfg.lr_schedule == "linear":
+        return cfg.lr * max(1.0 - progress, 0.05)
+    return cfg.lr
+
+
+def ppo_update(
+    model: ActorCritic,
+    optimizer: torch.optim.Optimizer,
+    batch: dict[str, np.ndarray],
+    cfg: PPOConfig,
+    num_e: int,
+    num_p: int,
+    generator: torch.Generator,
+    lr: float | None = None,
+) -> dict[str, float]:
+    """Epochs of clipped-surrogate PPO over a flat batch; returns loss statistics.
+
+    batch: obs (N, D), u (N,) pre-squash actions, logp (N,), adv (N,), ret (N,),
+    and state (N, S) for a centralised critic.
+    """
+    device = next(model.parameters()).device
+    t = {k: torch.as_tensor(v, device=device) for k, v in batch.items()}
+    n = t["obs"].shape[0]
+    if lr is not None:
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+    stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+    mb = min(cfg.minibatch_size, n)
+    for _ in range(cfg.epochs):
+        order = torch.randperm(n, generator=generator).to(device)
+        for start in range(0, n - mb + 1, mb):
+            idx = order[start : start + mb]
+            dist = model.dist(t["obs"][idx], num_e)
+            logp = squash_log_prob(dist, t["u"][idx])
+            ratio = (logp - t["logp"][idx]).exp()
+            adv = t["adv"][idx]
+            if cfg.normalize_advantages:
+                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            pg = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean()
+            state = t["state"][idx] if "state" in t else None
+            v = model.value(t["obs"][idx], num_e, state, num_p)
+            vloss = 0.5 * ((v - t["ret"][idx]) ** 2).mean()
+            ent = dist.entropy().mean()
+            loss = pg + cfg.vf_coef * vloss - cfg.ent_coef * ent
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+            optimizer.step()
+            with torch.no_grad():
+                log_ratio = logp - t["logp"][idx]
+                stats["approx_kl"].append(float(((ratio - 1) - log_ratio).mean()))
+                stats["clipfrac"].append(float(((ratio - 1).abs() > cfg.clip).float().mean()))
+            stats["policy_loss"].append(float(pg.detach()))
+            stats["value_loss"].append(float(vloss.detach()))
+            stats["entropy"].append(float(ent.detach()))
+    return {k: float(np.mean(v)) if v else 0.0 for k, v in stats.items()}

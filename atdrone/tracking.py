@@ -1,0 +1,82 @@
+"""Experiment tracking: the one module that imports mlflow.
+
+Runs go to ``MLFLOW_TRACKING_URI`` when set, else to a sqlite file ``mlflow.db`` in
+the working directory (browse with ``mlflow ui --backend-store-uri sqlite:///mlflow.db``).
+Metric names are namespaced: train/..., eval/..., perf/..., pop/...
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+DEFAULT_URI = "sqlite:///mlflow.db"
+log = logging.getLogger(__name__)
+
+
+def tracking_uri(uri: str | None = None) -> str:
+    """The tracking URI in force: the argument, MLFLOW_TRACKING_URI, or ./mlflow.db."""
+    return uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+
+
+def _flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    out: dict[str, str] = {}
+    for k, v in params.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, f"{key}."))
+        else:
+            out[key] = str(v)[:6000]
+    return out
+
+
+class Tracker:
+    """A thin handle on one MLflow run (and its nested children)."""
+
+    def __init__(self, uri: str | None = None) -> None:
+        import mlflow
+
+        logging.getLogger("alembic").setLevel(logging.WARNING)
+        self.mlflow = mlflow
+        self.uri = tracking_uri(uri)
+        mlflow.set_tracking_uri(self.uri)
+
+    @contextmanager
+    def run(
+        self,
+        experiment: str,
+        run_name: str,
+        nested: bool = False,
+        run_id: str | None = None,
+        tags: Mapping[str, str] | None = None,
+    ) -> Iterator[str]:
+        """Start (or with ``run_id`` resume) a run; yields its id."""
+        if not nested:
+            self.mlflow.set_experiment(experiment)
+        with self.mlflow.start_run(run_name=run_name, nested=nested, run_id=run_id, tags=dict(tags or {})) as r:
+            yield r.info.run_id
+
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        flat = _flatten(params)
+        existing = self.mlflow.active_run().data.params if self.mlflow.active_run() else {}
+        fresh = {k: v for k, v in flat.items() if k not in existing}
+        if fresh:
+            self.mlflow.log_params(fresh)
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        clean = {k: float(v) for k, v in metrics.items() if v is not None and v == v}
+        if clean:
+            self.mlflow.log_metrics(clean, step=step)
+
+    def log_artifact(self, path: str | Path, artifact_path: str | None = None) -> None:
+        self.mlflow.log_artifact(str(path), artifact_path=artifact_path)
+
+    def log_dict(self, data: Mapping[str, Any], name: str) -> None:
+        self.mlflow.log_dict(dict(data), name)
+
+    def set_tags(self, tags: Mapping[str, str]) -> None:
+        self.mlflow.set_tags(dict(tags))
