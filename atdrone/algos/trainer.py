@@ -60,7 +60,10 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     doc = dict(path_or_doc) if isinstance(path_or_doc, dict) else read_document(path_or_doc, "train")
     doc.update({k: v for k, v in overrides.items() if v is not None})
     cfg: TrainConfig = parse_document(TrainConfig, doc)
-    load_task(cfg.task)
+    try:
+        load_task(cfg.task)
+    except ConfigError as exc:
+        raise ConfigError("task", str(exc)) from None
     ppo_config(cfg.ppo, cfg.preset)
     if cfg.mode == "best_response" and not cfg.zoo:
         raise ConfigError("zoo", "best_response training needs a zoo")

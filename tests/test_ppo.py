@@ -1,0 +1,211 @@
+"""PPO pieces: GAE, tanh-Gaussian log-probs, checkpoints, resume, and a seeded learning run."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from atdrone.algos.networks import ActorCritic, NetConfig, action_log_prob, squash_log_prob
+from atdrone.algos.ppo import gae, ppo_config
+from atdrone.algos.trainer import Trainer, load_train_config
+from atdrone.checkpoint import CheckpointError, load_checkpoint, load_policy, read_header, save_checkpoint
+from atdrone.config import ConfigError
+from atdrone.envs import BatchedPursuit
+from atdrone.policies.base import DroneBatch
+
+
+def gae_loop(rewards, values, dones, last_values, gamma, lam):
+    """Plain per-element GAE: the reference for the vectorised one."""
+    T = rewards.shape[0]
+    adv = np.zeros_like(rewards)
+    for idx in np.ndindex(*rewards.shape[1:]):
+        running = 0.0
+        for t in reversed(range(T)):
+            next_v = last_values[idx] if t == T - 1 else values[(t + 1, *idx)]
+            live = 1.0 - dones[(t, *idx)]
+            delta = rewards[(t, *idx)] + gamma * next_v * live - values[(t, *idx)]
+            running = delta + gamma * lam * live * running
+            adv[(t, *idx)] = running
+    return adv, adv + values
+
+
+def test_vectorised_gae_equals_plain_loop():
+    rng = np.random.default_rng(0)
+    shape = (17, 5, 3)
+    rewards = rng.normal(size=shape).astype(np.float32)
+    values = rng.normal(size=shape).astype(np.float32)
+    dones = (rng.random(shape) < 0.15).astype(np.float32)
+    last = rng.normal(size=shape[1:]).astype(np.float32)
+    adv, ret = gae(rewards, values, dones, last, 0.97, 0.9)
+    ref_adv, ref_ret = gae_loop(rewards, values, dones, last, 0.97, 0.9)
+    np.testing.assert_allclose(adv, ref_adv, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(ret, ref_ret, rtol=1e-5, atol=1e-5)
+
+
+def test_gae_one_step_by_hand():
+    adv, ret = gae(np.array([[1.0]]), np.array([[0.5]]), np.array([[0.0]]), np.array([2.0]), 0.9, 0.8)
+    assert adv[0, 0] == pytest.approx(1.0 + 0.9 * 2.0 - 0.5)
+    assert ret[0, 0] == pytest.approx(1.0 + 0.9 * 2.0)
+
+
+def test_tanh_gaussian_log_prob_matches_change_of_variables():
+    dist = torch.distributions.Normal(torch.tensor([0.3, -1.0, 2.0]), torch.tensor([0.5, 0.2, 1.0]))
+    u = torch.tensor([0.1, -2.0, 4.0], dtype=torch.float64).float()
+    expected = dist.log_prob(u) - torch.log(1 - torch.tanh(u.double()) ** 2).float()
+    torch.testing.assert_close(squash_log_prob(dist, u), expected, rtol=1e-4, atol=1e-4)
+
+
+def test_tanh_gaussian_log_prob_is_finite_and_right_at_the_bounds():
+    dist = torch.distributions.Normal(torch.zeros(4), torch.ones(4))
+    # far in the tails tanh(u) rounds to +-1; the stable form stays finite and exact
+    u = torch.tensor([-30.0, -12.0, 12.0, 30.0])
+    lp = squash_log_prob(dist, u)
+    assert torch.isfinite(lp).all()
+    # log(1 - tanh(u)^2) ~ log 4 - 2|u| for large |u|
+    expected = dist.log_prob(u) - (math.log(4.0) - 2 * u.abs())
+    torch.testing.assert_close(lp, expected, rtol=1e-5, atol=1e-4)
+    # actions given exactly at the bounds (from another policy) are clamped, not infinite
+    a = torch.tensor([-1.0, -1.0, 1.0, 1.0])
+    assert torch.isfinite(action_log_prob(dist, a)).all()
+
+
+def _trained_model(seed: int = 0) -> ActorCritic:
+    torch.manual_seed(seed)
+    model = ActorCritic(NetConfig(entity_dim=16, hidden=32))
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    return model
+
+
+def _header(**extra):
+    return {"task": "4p2e1o", "num_p": 4, "num_e": 2, "seed": 0, "step": 7, **extra}
+
+
+def test_checkpoint_round_trips_to_identical_actions(tmp_path):
+    model = _trained_model()
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, model, _header(name="m"))
+    policy = load_policy(path)
+    env = BatchedPursuit("4p2e1o", num_envs=8, seed=3)
+    obs = env.reset()
+    batch = DroneBatch.all_slots(env, obs)
+    with torch.no_grad():
+        direct = torch.tanh(model.dist(torch.from_numpy(batch.obs), 2).mean).numpy()
+    np.testing.assert_array_equal(policy.act(batch), direct)
+    header = read_header(path)
+    assert header["step"] == 7 and header["architecture"]["hidden"] == 32 and len(header["sha256"]) == 64
+    assert path.read_bytes().startswith(b"ATDRONE-CHECKPOINT 1\n")
+
+
+def test_loaded_checkpoint_works_for_three_evaders(tmp_path):
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, _trained_model(), _header())
+    policy = load_policy(path)
+    env = BatchedPursuit("4p3e5o", num_envs=2, seed=0)
+    actions = policy.act(DroneBatch.all_slots(env, env.reset()))
+    assert actions.shape == (8,) and np.all(np.abs(actions) <= 1)
+
+
+def test_corrupted_checkpoint_is_refused(tmp_path):
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, _trained_model(), _header())
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match="sha256"):
+        load_checkpoint(path)
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda b: b"NOT A CHECKPOINT\n" + b, "magic"),
+        (lambda b: b[:30], "header"),
+        (lambda b: b.replace(b'"obs_layout_version": 1', b'"obs_layout_version": 9'), "layout"),
+        (lambda b: b.replace(b'"hidden": 32', b'"hidden": 64'), "architecture"),
+    ],
+)
+def test_mismatched_checkpoint_is_refused(tmp_path, mutate, message):
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, _trained_model(), _header())
+    path.write_bytes(mutate(path.read_bytes()))
+    with pytest.raises(CheckpointError, match=message):
+        load_checkpoint(path)
+
+
+def test_checkpoint_for_another_task_is_refused(tmp_path):
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, _trained_model(), _header())
+    with pytest.raises(CheckpointError, match="4p2e5o"):
+        load_checkpoint(path, expect_task="4p2e5o")
+
+
+def test_ppo_config_rejects_bad_values_by_name():
+    with pytest.raises(ConfigError, match=r"ppo\.lr"):
+        ppo_config({"lr": -1.0})
+    with pytest.raises(ConfigError, match=r"ppo\.epochs"):
+        ppo_config({"epochs": "many"})
+    with pytest.raises(ConfigError, match=r"ppo\.bogus"):
+        ppo_config({"bogus": 1})
+    assert ppo_config(preset="paper").epochs == 20 and ppo_config(preset="paper").minibatch_size == 256
+
+
+def _tiny(tmp_path, **kw):
+    doc = {
+        "name": "tiny",
+        "task": "4p2e1o",
+        "seed": 1,
+        "total_env_steps": 10_000,
+        "eval_every": 1000,
+        "eval_episodes": 4,
+        "out_dir": str(tmp_path),
+        "ppo": {"num_envs": 8, "rollout_steps": 32, "minibatch_size": 256, "entity_dim": 16, "hidden": 32},
+    }
+    doc.update(kw)
+    return load_train_config(doc)
+
+
+def test_resume_continues_from_saved_step_with_equal_parameters(tmp_path):
+    cfg = _tiny(tmp_path)
+    first = Trainer(cfg)
+    for _ in range(3):
+        first.update_once()
+    first.save()
+    second = Trainer(cfg)
+    assert second.resume()
+    assert second.env_steps == first.env_steps == 3 * 8 * 32 and second.updates == 3
+    for (name, a), (_, b) in zip(first.model.state_dict().items(), second.model.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name
+    moments = zip(
+        first.optimizer.state_dict()["state"].values(), second.optimizer.state_dict()["state"].values(), strict=True
+    )
+    for a, b in moments:
+        assert torch.equal(a["exp_avg"], b["exp_avg"])
+    # and both continue identically from there
+    torch.manual_seed(0)
+    second.update_once()
+    assert second.env_steps == 4 * 8 * 32
+
+
+def test_train_config_errors_name_the_field(tmp_path):
+    with pytest.raises(ConfigError, match=r"^mode"):
+        _tiny(tmp_path, mode="greedy")
+    with pytest.raises(ConfigError, match=r"^zoo"):
+        _tiny(tmp_path, mode="best_response")
+    with pytest.raises(ConfigError, match=r"^task"):
+        _tiny(tmp_path, task="nope")
+
+
+def test_seeded_short_self_play_run_improves_its_return(tmp_path):
+    cfg = _tiny(tmp_path, seed=0, ppo={"num_envs": 32, "rollout_steps": 64, "minibatch_size": 1024, "lr": 1e-3})
+    trainer = Trainer(cfg)
+    returns = []
+    for _ in range(14):
+        row = trainer.update_once()
+        returns.append(row.get("train/episode_return", np.nan))
+    early, late = np.nanmean(returns[:3]), np.nanmean(returns[-3:])
+    assert late > early + 1.0, (early, late)
