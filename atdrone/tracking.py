@@ -38,6 +38,7 @@ class Tracker:
     """A thin handle on one MLflow run (and its nested children)."""
 
     def __init__(self, uri: str | None = None) -> None:
+        os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")  # nothing leaves this machine
         import mlflow
 
         logging.getLogger("alembic").setLevel(logging.WARNING)
@@ -80,3 +81,16 @@ class Tracker:
 
     def set_tags(self, tags: Mapping[str, str]) -> None:
         self.mlflow.set_tags(dict(tags))
+
+    def log_model(self, model: Any, name: str, alias: str | None = None, tags: Mapping[str, str] | None = None) -> str:
+        """Log a torch model to the active run, register it as ``name`` and point ``alias`` at it."""
+        import mlflow.pytorch
+
+        info = mlflow.pytorch.log_model(model, name="model", registered_model_name=name, serialization_format="pickle")
+        version = str(info.registered_model_version)
+        client = self.mlflow.MlflowClient()
+        for key, value in (tags or {}).items():
+            client.set_model_version_tag(name, version, key, value)
+        if alias:
+            client.set_registered_model_alias(name, alias, version)
+        return version

@@ -1,0 +1,198 @@
+"""The driver of a population training run: Ray, the registry actor, the coordinator, MLflow.
+
+``run_experiment`` starts (or joins, with ``address``) a Ray cluster, serves the run's
+registry (``<out_dir>/<name>/registry.db``) from a named actor in namespace
+``atdrone``, creates the coordinator and asks it for one generation after another.
+After each generation it writes ``service_state.json`` (atomically) and logs the
+generation to MLflow as a nested run under the job's parent run, with a nested run
+per learner. ``resume=True`` continues from the last completed generation.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from atdrone.checkpoint import atomic_write_bytes
+from atdrone.service.experiment import ExperimentConfig
+
+log = logging.getLogger(__name__)
+STATE_FILE = "service_state.json"
+
+
+def _write_json(path: Path, data: Any) -> None:
+    atomic_write_bytes(path, json.dumps(data, indent=2, default=_jsonable).encode())
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def init_ray(address: str | None, num_cpus: int | None = None) -> None:
+    """Join the cluster at ``address`` (or RAY_ADDRESS), else start a local one."""
+    import ray
+
+    if ray.is_initialized():
+        return
+    address = address or os.environ.get("RAY_ADDRESS")
+    kwargs: dict[str, Any] = {"namespace": "atdrone", "log_to_driver": False}
+    if address:
+        ray.init(address=address, **kwargs)
+    else:
+        ray.init(num_cpus=num_cpus or min(os.cpu_count() or 2, 8), include_dashboard=False, **kwargs)
+
+
+def run_experiment(
+    cfg: ExperimentConfig,
+    address: str | None = None,
+    resume: bool = False,
+    tracking_uri: str | None = None,
+    progress: bool = True,
+    num_cpus: int | None = None,
+    stop_after: int | None = None,
+) -> dict[str, Any]:
+    """Run (or resume) an experiment to ``cfg.generations``; returns the final summary.
+
+    ``stop_after``: stop once this many generations are complete (for tests of resume).
+    """
+    import ray
+
+    from atdrone.registry import registry_actor
+    from atdrone.service.coordinator import Coordinator
+    from atdrone.tracking import Tracker
+
+    run_dir = Path(cfg.out_dir).resolve() / cfg.name
+    state_path = run_dir / STATE_FILE
+    saved: dict[str, Any] = {}
+    if state_path.exists():
+        if not resume:
+            raise FileExistsError(f"{run_dir} holds a run: pass --resume to continue it, or pick another name")
+        saved = json.loads(state_path.read_text())
+    run_dir.mkdir(parents=True, exist_ok=True)
+    _write_json(run_dir / "config.json", cfg.to_dict())
+    init_ray(address, num_cpus)
+    registry = registry_actor(run_dir / "registry.db")
+    coordinator = Coordinator.remote(cfg, str(run_dir), saved.get("coordinator"))
+    tracker = Tracker(tracking_uri)
+    reports: list[dict[str, Any]] = []
+    with tracker.run(cfg.name, f"{cfg.name}-{cfg.algorithm}", run_id=saved.get("mlflow_run_id")) as run_id:
+        tracker.log_params({"experiment": cfg.to_dict()})
+        tracker.set_tags({"atdrone.algorithm": cfg.algorithm, "atdrone.task": cfg.task})
+        tracker.log_artifact(run_dir / "config.json")
+        start = saved.get("coordinator", {}).get("generation", 0)
+        for g in range(start, cfg.generations):
+            t0 = time.perf_counter()
+            report = ray.get(coordinator.run_generation.remote())
+            reports.append(report)
+            _log_generation(tracker, report, run_dir, registry, cfg)
+            state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id}
+            _write_json(state_path, state)
+            if progress:
+                learners = ", ".join(report["learners"])
+                print(
+                    f"[{cfg.name}] generation {g} done in {time.perf_counter() - t0:.0f}s: learners {learners}; "
+                    f"population {len(report['population'])}",
+                    flush=True,
+                )
+            if stop_after is not None and g + 1 >= stop_after:
+                return {"run_dir": str(run_dir), "mlflow_run_id": run_id, "reports": reports, "stopped": True}
+        summary = _finish(tracker, coordinator, registry, cfg, run_dir)
+        summary.update({"run_dir": str(run_dir), "mlflow_run_id": run_id, "reports": reports})
+    return summary
+
+
+def _log_generation(tracker: Any, report: dict[str, Any], run_dir: Path, registry: Any, cfg: ExperimentConfig) -> None:
+    import ray
+
+    g = report["generation"]
+    gen_dir = run_dir / "generations" / f"{g:03d}"
+    with tracker.run(cfg.name, f"generation-{g}", nested=True):
+        metrics = {"pop/size": len(report["population"]), "perf/generation_s": report["wall_s"]}
+        if report.get("rho"):
+            metrics["pop/rho_entropy"] = report["rho_entropy"]
+            metrics.update({f"pop/eta/{m}": v for m, v in report["eta"].items()})
+            metrics.update({f"pop/rho/{m}": v for m, v in report["rho"].items()})
+        if report.get("matches"):
+            metrics["eval/matches"] = len(report["matches"])
+            metrics["eval/SUC"] = float(np.mean([m["SUC"] for m in report["matches"]]))
+            metrics["eval/COL"] = float(np.mean([m["COL"] for m in report["matches"]]))
+        tracker.log_metrics(metrics, step=g)
+        if "weights" in report:
+            graph = {k: report[k] for k in ("weights", "preference", "eta", "rho", "profiles", "removed")}
+            _write_json(gen_dir / "hypergraph.json", graph)
+            tracker.log_artifact(gen_dir / "hypergraph.json")
+            if report["weights"]:
+                from atdrone.service.plots import draw_hypergraph
+
+                draw_hypergraph(report["weights"], report["preference"], report["eta"], gen_dir / "hypergraph.png")
+                tracker.log_artifact(gen_dir / "hypergraph.png")
+        table = ray.get(registry.crossplay.remote(task=None))
+        if len(table) > 1:
+            from atdrone.service.plots import crossplay_heatmap
+
+            crossplay_heatmap(table, gen_dir / "crossplay.png", title=f"{cfg.name} cross-play SUC, generation {g}")
+            tracker.log_artifact(gen_dir / "crossplay.png")
+        for member, history in report["history"].items():
+            with tracker.run(cfg.name, f"learner-{member}", nested=True):
+                tracker.set_tags({"atdrone.member": member, "atdrone.generation": str(g)})
+                for i, row in enumerate(history):
+                    tracker.log_metrics(row, step=i)
+                tracker.log_artifact(run_dir / "members" / f"{member}.pt", "checkpoints")
+                registry.update_member.remote(member, mlflow_run_id=tracker.mlflow.active_run().info.run_id)
+
+
+def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig, run_dir: Path) -> dict[str, Any]:
+    """Evaluate the population on the final zoo, print and log the population table."""
+    import ray
+
+    results = (
+        ray.get(coordinator.evaluate_population.remote(cfg.final_zoo, cfg.final_episodes)) if cfg.final_zoo else {}
+    )
+    state = ray.get(coordinator.state.remote())
+    rows = []
+    for m in state["population"]:
+        row = {"member": m, "eta": state["eta"].get(m, float("nan"))}
+        for k, v in results.get(m, {}).items():
+            row[f"{cfg.final_zoo}_{k}"] = v
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    atomic_write_bytes(run_dir / "population.csv", table.to_csv(index=False).encode())
+    tracker.log_artifact(run_dir / "population.csv")
+    suc = f"{cfg.final_zoo}_SUC"
+    if results:
+        tracker.log_metrics({f"eval/{cfg.final_zoo}/best_SUC": float(table[suc].max())}, step=cfg.generations)
+        best = str(table.loc[table[suc].idxmax(), "member"])
+    else:
+        best = state["population"][-1]
+    _log_best(tracker, best, run_dir, cfg)
+    return {"population": table, "best": best}
+
+
+def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> None:
+    """Log the best member as an MLflow model with alias "champion", and a GIF of it playing."""
+    from atdrone.checkpoint import load_checkpoint
+
+    path = run_dir / "members" / f"{best}.pt"
+    model, header = load_checkpoint(path)
+    tracker.log_model(model, name=f"atdrone-{cfg.name}", alias="champion", tags={"member": best})
+    if cfg.gif:
+        from atdrone.checkpoint import NeuralPolicy
+        from atdrone.envs.render import record_episode, save_gif
+
+        policy = NeuralPolicy(model, name=best)
+        frames, _ = record_episode(cfg.task, seed=cfg.seed, policy=policy, frame_every=4, max_steps=400)
+        gif = run_dir / "best.gif"
+        save_gif(frames, gif, fps=10)
+        tracker.log_artifact(gif)
+    tracker.log_dict(header, "best_member_header.json")
