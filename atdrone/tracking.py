@@ -34,6 +34,24 @@ def _flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     return out
 
 
+@contextmanager
+def _store_lock(uri: str) -> Iterator[None]:
+    """An exclusive lock beside a sqlite store while it is opened (and maybe created)."""
+    if not uri.startswith("sqlite:///"):
+        yield
+        return
+    import fcntl
+
+    db = Path(uri.removeprefix("sqlite:///"))
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with open(f"{db}.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 class Tracker:
     """A thin handle on one MLflow run (and its nested children)."""
 
@@ -45,6 +63,8 @@ class Tracker:
         self.mlflow = mlflow
         self.uri = tracking_uri(uri)
         mlflow.set_tracking_uri(self.uri)
+        with _store_lock(self.uri):  # two processes creating one sqlite store race on its schema
+            mlflow.MlflowClient().search_experiments(max_results=1)
 
     @contextmanager
     def run(
@@ -57,7 +77,8 @@ class Tracker:
     ) -> Iterator[str]:
         """Start (or with ``run_id`` resume) a run; yields its id."""
         if not nested:
-            self.mlflow.set_experiment(experiment)
+            with _store_lock(self.uri):
+                self.mlflow.set_experiment(experiment)
         with self.mlflow.start_run(run_name=run_name, nested=nested, run_id=run_id, tags=dict(tags or {})) as r:
             yield r.info.run_id
 
