@@ -163,10 +163,79 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+# -------------------------------------------------------------- registry
+def add_registry(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "registry",
+        help="query the population registry (members, cross-play, lineage, export)",
+        description="Read the population registry's sqlite file directly (whether or not Ray is running). "
+        "The file is --db, else $ATDRONE_REGISTRY, else ./registry.db.",
+    )
+    db_help = "registry file (default: $ATDRONE_REGISTRY or ./registry.db)"
+    p.add_argument("--db", type=Path, default=None, help=db_help)
+    sub = p.add_subparsers(dest="registry_command", metavar="QUERY", required=True)
+
+    def query(name: str, help: str) -> argparse.ArgumentParser:
+        q = sub.add_parser(name, help=help, description=help)
+        q.add_argument("--db", type=Path, default=argparse.SUPPRESS, help=db_help)  # also accepted after QUERY
+        return q
+
+    q = query("list", "the members, optionally filtered")
+    q.add_argument("--run", default=None, help="only this run")
+    q.add_argument("--task", default=None, help="only this task")
+    q.add_argument("--status", default=None, help="only this status (active, retired, missing)")
+    query("show", "every field of one member").add_argument("id", help="member id")
+    q = query("crossplay", "the member x member matrix of a metric, averaged over matches")
+    q.add_argument("--task", default=None, help="only matches on this task")
+    q.add_argument("--metric", default="SUC", help="SUC (default), COL, AST or REW")
+    query("lineage", "a member and all its ancestors").add_argument("id", help="member id")
+    q = query("export", "write a table to CSV or Parquet")
+    q.add_argument("--format", choices=("csv", "parquet"), default="csv", help="file format (default csv)")
+    tables = ("members", "matches", "generations")
+    q.add_argument("--table", choices=tables, default="members", help="which table (default members)")
+    q.add_argument("--out", type=Path, required=True, help="output file")
+    return p
+
+
+def run_registry(args: argparse.Namespace) -> int:
+    import pandas as pd
+
+    from atdrone.registry import Registry, RegistryError, default_path
+
+    path = args.db if args.db is not None else default_path()
+    try:
+        registry = Registry(path, create=False)
+    except (FileNotFoundError, RegistryError) as exc:
+        print(f"atdrone registry: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    with registry, pd.option_context("display.width", 200, "display.max_colwidth", 60, "display.max_rows", None):
+        try:
+            if args.registry_command == "list":
+                frame = registry.members(run=args.run, task=args.task, status=args.status)
+                cols = ["id", "run", "algorithm", "generation", "task", "status", "parents", "metrics"]
+                print(frame[cols].to_string(index=False) if len(frame) else "(no members)")
+            elif args.registry_command == "show":
+                print(pd.Series(registry.member(args.id), dtype=object).to_string())
+            elif args.registry_command == "crossplay":
+                matrix = registry.crossplay(task=args.task, metric=args.metric)
+                print(matrix.to_string(float_format=lambda v: f"{v:.1f}") if len(matrix) else "(no matches)")
+            elif args.registry_command == "lineage":
+                print(registry.lineage(args.id).to_string(index=False))
+            else:
+                out = registry.export(args.out, format=args.format, table=args.table)
+                print(f"wrote {out} ({args.table}, {args.format})")
+        except (KeyError, RegistryError) as exc:
+            message = exc.args[0] if exc.args else exc
+            print(f"atdrone registry: error: {message}", file=sys.stderr)
+            return EXIT_USAGE
+    return 0
+
+
 COMMANDS: dict[str, Command] = {
     "render": Command(add_render, run_render),
     "demo": Command(add_demo, run_demo),
     "train": Command(add_train, run_train),
+    "registry": Command(add_registry, run_registry),
 }
 
 

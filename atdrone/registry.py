@@ -1,0 +1,601 @@
+"""The population registry: members, match results and generations in one sqlite file.
+
+Every trained policy that joins a population is a *member* (id, algorithm, generation,
+parents, checkpoint path and sha256, task, status, MLflow run id, tags, metrics); every
+evaluation of a team is a *match* (the member ids in slot order, task, seeds, episodes,
+SUC/COL/AST/REW); every step of a run is a *generation* (started, finished, info). The
+pandas views answer the usual questions: the member table, the cross-play matrix and a
+member's lineage.
+
+Storage. sqlite in WAL mode, so readers (``atdrone registry ...``, a notebook) never
+block the writer and never see half a transaction. Each :class:`Registry` holds one
+connection (``check_same_thread=False``) guarded by a lock, so one object may be shared
+by threads; every write is one ``BEGIN IMMEDIATE`` transaction, so several Registry
+objects (or processes) on one file serialise their writes instead of losing them, and a
+read-modify-write such as merging metrics is atomic. JSON columns (parents, tags,
+metrics, team, seeds, info) are stored as text and decoded in the views.
+
+On Ray. :func:`registry_actor` gets or creates the named actor ``RegistryActor`` (this
+class as a Ray actor, ``num_cpus=0``) in the namespace :data:`REGISTRY_NAMESPACE`;
+another driver on the same cluster finds it with :func:`find_registry_actor` (or
+``ray.get_actor(name, namespace="atdrone")``). The actor holds no state beyond the
+sqlite file, so when it dies Ray restarts it (``max_restarts=-1``) and it reopens the
+file: nothing committed is lost. Ray is imported only when the actor is used.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import functools
+import json
+import operator
+import os
+import re
+import secrets
+import sqlite3
+import tempfile
+import threading
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+SCHEMA_VERSION = 1
+STATUSES = ("active", "retired", "missing")
+METRICS = ("SUC", "COL", "AST", "REW")  # the evaluation protocol's metrics, one column each in matches
+TABLES = ("members", "matches", "generations")
+EXPORT_FORMATS = ("csv", "parquet")
+REGISTRY_NAMESPACE = "atdrone"
+DEFAULT_ACTOR_NAME = "registry"
+DEFAULT_PATH = "registry.db"
+ENV_VAR = "ATDRONE_REGISTRY"
+
+_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)",
+    """CREATE TABLE IF NOT EXISTS members (
+        id TEXT PRIMARY KEY,
+        run TEXT NOT NULL,
+        algorithm TEXT NOT NULL,
+        generation INTEGER NOT NULL,
+        parents TEXT NOT NULL DEFAULT '[]',
+        checkpoint TEXT,
+        sha256 TEXT,
+        task TEXT NOT NULL,
+        status TEXT NOT NULL DEFAULT 'active' CHECK (status IN ('active', 'retired', 'missing')),
+        mlflow_run_id TEXT,
+        tags TEXT NOT NULL DEFAULT '{}',
+        metrics TEXT NOT NULL DEFAULT '{}',
+        created TEXT NOT NULL
+    )""",
+    "CREATE INDEX IF NOT EXISTS members_run ON members (run, generation)",
+    "CREATE INDEX IF NOT EXISTS members_task ON members (task)",
+    """CREATE TABLE IF NOT EXISTS matches (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        run TEXT NOT NULL,
+        generation INTEGER NOT NULL,
+        team TEXT NOT NULL,
+        task TEXT NOT NULL,
+        seeds TEXT NOT NULL,
+        episodes INTEGER NOT NULL,
+        SUC REAL, COL REAL, AST REAL, REW REAL,
+        created TEXT NOT NULL
+    )""",
+    "CREATE INDEX IF NOT EXISTS matches_run ON matches (run, generation)",
+    "CREATE INDEX IF NOT EXISTS matches_task ON matches (task)",
+    """CREATE TABLE IF NOT EXISTS generations (
+        run TEXT NOT NULL,
+        idx INTEGER NOT NULL,
+        started TEXT,
+        finished TEXT,
+        info TEXT NOT NULL DEFAULT '{}',
+        PRIMARY KEY (run, idx)
+    )""",
+)
+_JSON_COLUMNS = {
+    "members": ("parents", "tags", "metrics"),
+    "matches": ("team", "seeds"),
+    "generations": ("info",),
+}
+
+
+class RegistryError(ValueError):
+    """A request the registry refuses: a duplicate id, a bad field, a file that is not a registry."""
+
+
+def default_path() -> Path:
+    """Where the registry lives unless told: ``$ATDRONE_REGISTRY``, else ``./registry.db``."""
+    return Path(os.environ.get(ENV_VAR) or DEFAULT_PATH)
+
+
+def new_member_id(algorithm: str, generation: int) -> str:
+    """A fresh member id such as ``hola-g3-a1b2c3`` (algorithm slug, generation, 6 random hex digits)."""
+    slug = re.sub(r"[^a-z0-9]+", "-", algorithm.lower()).strip("-") or "member"
+    return f"{slug}-g{generation}-{secrets.token_hex(3)}"
+
+
+def _now() -> str:
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+
+
+def _json_default(value: Any) -> Any:
+    """numpy scalars and arrays (metrics straight from a learner) as plain JSON values."""
+    for convert in ("tolist", "item"):  # numpy: tolist() is the value for scalars and arrays alike
+        if hasattr(value, convert):
+            return getattr(value, convert)()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, default=_json_default)
+
+
+def _check_int(name: str, value: Any, minimum: int = 0) -> int:
+    """``value`` as a Python int (numpy integers accepted), refusing bools, floats and values below ``minimum``."""
+    try:
+        number = operator.index(value)
+    except TypeError:
+        number = None
+    if isinstance(value, bool) or number is None or number < minimum:
+        raise RegistryError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return number
+
+
+def _check_text(name: str, value: Any) -> str:
+    if not isinstance(value, str) or not value:
+        raise RegistryError(f"{name} must be a non-empty string, got {value!r}")
+    return value
+
+
+def _check_dict(name: str, value: Any) -> dict[str, Any]:
+    if not isinstance(value, Mapping):
+        raise RegistryError(f"{name} must be a dict, got {type(value).__name__}")
+    return dict(value)
+
+
+def _check_ids(name: str, value: Any) -> list[str]:
+    if isinstance(value, str) or not isinstance(value, Sequence):
+        raise RegistryError(f"{name} must be a list of member ids, got {value!r}")
+    for v in value:
+        _check_text(f"each of {name}", v)
+    return list(value)
+
+
+def _replace_atomically(path: Path, write: Any) -> None:
+    """Call ``write(tmp_path)`` on a temp file beside ``path``, then rename it into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class Registry:
+    """The population registry on one sqlite file (created with its schema when missing).
+
+    Arguments:
+        path: the sqlite file (default :func:`default_path`).
+        create: make the file and schema when missing; with ``False`` a missing file
+            raises FileNotFoundError and a file without the registry schema raises
+            RegistryError (what read-only tools such as the CLI want).
+
+    One object holds one connection and a lock, so it may be shared between threads;
+    close it with :meth:`close` or use it as a context manager.
+    """
+
+    def __init__(self, path: str | os.PathLike[str] | None = None, *, create: bool = True) -> None:
+        self.path = Path(path) if path is not None else default_path()
+        if not create and not self.path.is_file():
+            raise FileNotFoundError(f"no registry at {self.path}")
+        if create:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.RLock()
+        self._conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+        try:
+            self.journal_mode = str(self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]).lower()
+            self._init_schema(create)
+        except BaseException:
+            self._conn.close()
+            raise
+
+    # ------------------------------------------------------------ plumbing
+    def _init_schema(self, create: bool) -> None:
+        has_version = self._conn.execute(
+            "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'schema_version'"
+        ).fetchone()
+        if not has_version and not create:
+            raise RegistryError(f"{self.path} is not an atdrone registry (no schema_version table)")
+        with self._write() as conn:
+            for statement in _SCHEMA:
+                conn.execute(statement)
+            row = conn.execute("SELECT MAX(version) FROM schema_version").fetchone()
+            if row[0] is None:
+                conn.execute("INSERT INTO schema_version (version) VALUES (?)", (SCHEMA_VERSION,))
+            elif row[0] > SCHEMA_VERSION:
+                raise RegistryError(
+                    f"{self.path} has registry schema v{row[0]}, this atdrone reads up to v{SCHEMA_VERSION}"
+                )
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction: taken at once (BEGIN IMMEDIATE), committed or rolled back whole."""
+        with self._lock, self._conn:
+            self._conn.execute("BEGIN IMMEDIATE")
+            yield self._conn
+
+    def _query(self, sql: str, params: Sequence[Any] = ()) -> pd.DataFrame:
+        with self._lock:
+            return pd.read_sql_query(sql, self._conn, params=list(params))
+
+    @staticmethod
+    def _decode(frame: pd.DataFrame, table: str) -> pd.DataFrame:
+        for col in _JSON_COLUMNS[table]:
+            frame[col] = [json.loads(v) for v in frame[col]]
+        return frame
+
+    @staticmethod
+    def _where(**filters: Any) -> tuple[str, list[Any]]:
+        items = [(k, v) for k, v in filters.items() if v is not None]
+        if not items:
+            return "", []
+        return " WHERE " + " AND ".join(f"{k} = ?" for k, _ in items), [v for _, v in items]
+
+    def db_path(self) -> str:
+        """The absolute path of the sqlite file (a method, so a Ray actor handle can answer it)."""
+        return str(self.path.resolve())
+
+    def close(self) -> None:
+        """Close the connection; the object is unusable afterwards."""
+        with self._lock:
+            self._conn.close()
+
+    def __enter__(self) -> Registry:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------- members
+    def add_member(
+        self,
+        *,
+        run: str,
+        algorithm: str,
+        generation: int,
+        task: str,
+        parents: Sequence[str] = (),
+        checkpoint: str | os.PathLike[str] | None = None,
+        sha256: str | None = None,
+        status: str = "active",
+        mlflow_run_id: str | None = None,
+        tags: Mapping[str, Any] | None = None,
+        metrics: Mapping[str, Any] | None = None,
+        member_id: str | None = None,
+    ) -> str:
+        """Register a member and return its id (generated by :func:`new_member_id` when not given).
+
+        Parents must already be registered, so lineage has no dangling links or cycles.
+        A duplicate ``member_id`` is refused with RegistryError.
+        """
+        _check_text("run", run)
+        _check_text("algorithm", algorithm)
+        generation = _check_int("generation", generation)
+        _check_text("task", task)
+        parent_ids = _check_ids("parents", parents)
+        if status not in STATUSES:
+            raise RegistryError(f"status must be one of {STATUSES}, got {status!r}")
+        row = {
+            "run": run,
+            "algorithm": algorithm,
+            "generation": generation,
+            "parents": _dumps(parent_ids),
+            "checkpoint": None if checkpoint is None else str(checkpoint),
+            "sha256": sha256,
+            "task": task,
+            "status": status,
+            "mlflow_run_id": mlflow_run_id,
+            "tags": _dumps(_check_dict("tags", tags or {})),
+            "metrics": _dumps(_check_dict("metrics", metrics or {})),
+            "created": _now(),
+        }
+        with self._write() as conn:
+            missing = [p for p in parent_ids if not conn.execute("SELECT 1 FROM members WHERE id = ?", (p,)).fetchone()]
+            if missing:
+                raise RegistryError(f"parents {missing} are not registered members")
+            if member_id is None:
+                member_id = new_member_id(algorithm, generation)
+                while conn.execute("SELECT 1 FROM members WHERE id = ?", (member_id,)).fetchone():
+                    member_id = new_member_id(algorithm, generation)
+            _check_text("member_id", member_id)
+            if conn.execute("SELECT 1 FROM members WHERE id = ?", (member_id,)).fetchone():
+                raise RegistryError(f"member {member_id!r} is already registered; ids are unique")
+            cols = ["id", *row]
+            conn.execute(
+                f"INSERT INTO members ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
+                [member_id, *row.values()],
+            )
+        return member_id
+
+    def add_checkpoint(self, checkpoint: str | os.PathLike[str], *, run: str, generation: int, **fields: Any) -> str:
+        """Register the policy in a checkpoint file: task, algorithm and sha256 come from its header.
+
+        Other keyword arguments go to :meth:`add_member`. Imports torch (through
+        :mod:`atdrone.checkpoint`), which verifies the file's sha256 on the way.
+        """
+        from atdrone.checkpoint import read_header
+
+        header = read_header(Path(checkpoint))
+        fields.setdefault("task", header["task"])
+        fields.setdefault("algorithm", header.get("algorithm") or "unknown")
+        return self.add_member(run=run, generation=generation, checkpoint=checkpoint, sha256=header["sha256"], **fields)
+
+    def update_member(
+        self,
+        member_id: str,
+        *,
+        status: str | None = None,
+        metrics: Mapping[str, Any] | None = None,
+        tags: Mapping[str, Any] | None = None,
+        mlflow_run_id: str | None = None,
+        checkpoint: str | os.PathLike[str] | None = None,
+        sha256: str | None = None,
+    ) -> dict[str, Any]:
+        """Change a member and return it: metrics and tags are merged key by key, the rest replaced.
+
+        Raises KeyError for an unknown id and RegistryError for a bad status.
+        """
+        if status is not None and status not in STATUSES:
+            raise RegistryError(f"status must be one of {STATUSES}, got {status!r}")
+        with self._write() as conn:
+            row = conn.execute("SELECT metrics, tags FROM members WHERE id = ?", (member_id,)).fetchone()
+            if row is None:
+                raise KeyError(f"no member {member_id!r} in the registry at {self.path}")
+            changes: dict[str, Any] = {}
+            if metrics is not None:
+                changes["metrics"] = _dumps({**json.loads(row[0]), **_check_dict("metrics", metrics)})
+            if tags is not None:
+                changes["tags"] = _dumps({**json.loads(row[1]), **_check_dict("tags", tags)})
+            for key, value in (("status", status), ("mlflow_run_id", mlflow_run_id), ("sha256", sha256)):
+                if value is not None:
+                    changes[key] = value
+            if checkpoint is not None:
+                changes["checkpoint"] = str(checkpoint)
+            if changes:
+                assignments = ", ".join(f"{k} = ?" for k in changes)
+                conn.execute(f"UPDATE members SET {assignments} WHERE id = ?", [*changes.values(), member_id])
+        return self.member(member_id)
+
+    def member(self, member_id: str) -> dict[str, Any]:
+        """One member as a dict (JSON fields decoded); KeyError when the id is unknown."""
+        frame = self._decode(self._query("SELECT * FROM members WHERE id = ?", (member_id,)), "members")
+        if frame.empty:
+            raise KeyError(f"no member {member_id!r} in the registry at {self.path}")
+        return {k: (None if _isnull(v) else v) for k, v in frame.iloc[0].to_dict().items()}
+
+    def members(self, run: str | None = None, task: str | None = None, status: str | None = None) -> pd.DataFrame:
+        """The members (in registration order), optionally filtered by run, task and status."""
+        where, params = self._where(run=run, task=task, status=status)
+        return self._decode(self._query(f"SELECT * FROM members{where} ORDER BY rowid", params), "members")
+
+    # ------------------------------------------------------------- matches
+    def add_match(
+        self,
+        team: Sequence[str],
+        task: str,
+        run: str,
+        generation: int,
+        seeds: Sequence[int],
+        episodes: int,
+        metrics: Mapping[str, float],
+    ) -> int:
+        """Record one evaluated team (member ids in slot order) and return the match id.
+
+        ``metrics`` must hold SUC, COL, AST and REW (other keys are ignored); AST may be
+        NaN when no episode succeeded, and is stored as NULL.
+        """
+        team_ids = _check_ids("team", team)
+        if not team_ids:
+            raise RegistryError("team must name at least one member")
+        _check_text("task", task)
+        _check_text("run", run)
+        generation = _check_int("generation", generation)
+        episodes = _check_int("episodes", episodes, minimum=1)
+        if isinstance(seeds, str) or not isinstance(seeds, Sequence):
+            raise RegistryError(f"seeds must be a list of integers, got {seeds!r}")
+        seed_list = [_check_int("each seed", s) for s in seeds]
+        missing = [m for m in METRICS if m not in metrics]
+        if missing:
+            raise RegistryError(f"match metrics lack {missing} (need {list(METRICS)})")
+        values = [float(metrics[m]) for m in METRICS]
+        with self._write() as conn:
+            cur = conn.execute(
+                "INSERT INTO matches (run, generation, team, task, seeds, episodes, SUC, COL, AST, REW, created)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [run, generation, _dumps(team_ids), task, _dumps(seed_list), episodes, *values, _now()],
+            )
+            match_id = cur.lastrowid
+        assert match_id is not None
+        return match_id
+
+    def matches(self, run: str | None = None, task: str | None = None) -> pd.DataFrame:
+        """The match results (in recording order), optionally filtered by run and task."""
+        where, params = self._where(run=run, task=task)
+        return self._decode(self._query(f"SELECT * FROM matches{where} ORDER BY id", params), "matches")
+
+    # --------------------------------------------------------- generations
+    def start_generation(self, run: str, idx: int, info: Mapping[str, Any] | None = None) -> None:
+        """Mark generation ``idx`` of ``run`` started (again: a restart clears ``finished``)."""
+        _check_text("run", run)
+        idx = _check_int("idx", idx)
+        with self._write() as conn:
+            conn.execute(
+                "INSERT INTO generations (run, idx, started, finished, info) VALUES (?, ?, ?, NULL, ?) ON CONFLICT"
+                " (run, idx) DO UPDATE SET started = excluded.started, finished = NULL, info = excluded.info",
+                (run, idx, _now(), _dumps(_check_dict("info", info or {}))),
+            )
+
+    def finish_generation(self, run: str, idx: int, info: Mapping[str, Any] | None = None) -> None:
+        """Mark generation ``idx`` of ``run`` finished, merging ``info`` into what start recorded."""
+        idx = _check_int("idx", idx)
+        with self._write() as conn:
+            row = conn.execute("SELECT info FROM generations WHERE run = ? AND idx = ?", (run, idx)).fetchone()
+            if row is None:
+                raise RegistryError(f"generation {idx} of run {run!r} was never started")
+            merged = {**json.loads(row[0]), **_check_dict("info", info or {})}
+            conn.execute(
+                "UPDATE generations SET finished = ?, info = ? WHERE run = ? AND idx = ?",
+                (_now(), _dumps(merged), run, idx),
+            )
+
+    def generations(self, run: str | None = None) -> pd.DataFrame:
+        """The generations, by run and index; ``finished`` is None for one still running (or interrupted)."""
+        where, params = self._where(run=run)
+        return self._decode(self._query(f"SELECT * FROM generations{where} ORDER BY run, idx", params), "generations")
+
+    def last_completed_generation(self, run: str) -> int | None:
+        """The highest finished generation index of ``run``, or None when none has finished."""
+        with self._lock:
+            row = self._conn.execute(
+                "SELECT MAX(idx) FROM generations WHERE run = ? AND finished IS NOT NULL", (run,)
+            ).fetchone()
+        return None if row[0] is None else int(row[0])
+
+    # --------------------------------------------------------------- views
+    def crossplay(self, task: str | None = None, metric: str = "SUC") -> pd.DataFrame:
+        """The member x member matrix of ``metric``, averaged over matches (each match counts once).
+
+        Cell (a, b), a != b: the mean over matches whose team contains both a and b. Diagonal
+        (a, a): the mean over matches whose team is only a (self-play). NaN where no match
+        qualifies. Rows and columns: every id seen in a team, registered members first in
+        registration order, then any other ids sorted.
+        """
+        if metric not in METRICS:
+            raise RegistryError(f"metric must be one of {METRICS}, got {metric!r}")
+        matches = self.matches(task=task)
+        if matches.empty:
+            return pd.DataFrame(index=pd.Index([], name="member"), columns=pd.Index([], name="partner"), dtype=float)
+        order = self._id_order(matches)
+        slots = pd.DataFrame(
+            {"match": matches["id"], "member": [sorted(set(t)) for t in matches["team"]], "value": matches[metric]}
+        )
+        sizes = slots["member"].map(len)
+        slots = slots.explode("member")
+        pairs = slots.merge(slots[["match", "member"]].rename(columns={"member": "partner"}), on="match")
+        pairs = pairs[pairs["member"] != pairs["partner"]]
+        solo = slots[slots["match"].isin(matches["id"][sizes.to_numpy() == 1])].assign(partner=lambda f: f["member"])
+        cells = pd.concat([pairs, solo]).astype({"value": float}).groupby(["member", "partner"])["value"].mean()
+        matrix = cells.unstack("partner").reindex(index=order, columns=order)
+        matrix.index.name, matrix.columns.name = "member", "partner"
+        return matrix
+
+    def _id_order(self, matches: pd.DataFrame) -> list[str]:
+        seen = {m for team in matches["team"] for m in team}
+        registered = [m for m in self.members()["id"] if m in seen]
+        return registered + sorted(seen - set(registered))
+
+    def lineage(self, member_id: str) -> pd.DataFrame:
+        """The member and all its ancestors (through ``parents``), nearest first.
+
+        Columns: id, depth (0 for the member, 1 for its parents, ...; the shortest path
+        when an ancestor is reached twice), generation, algorithm, run, parents, status.
+        """
+        self.member(member_id)  # KeyError for an unknown id
+        depth = {member_id: 0}
+        frontier = [member_id]
+        while frontier:
+            marks = ", ".join("?" * len(frontier))
+            rows = self._query(f"SELECT id, parents FROM members WHERE id IN ({marks})", frontier)
+            nxt = []
+            for child, parents in zip(rows["id"], rows["parents"], strict=True):
+                for parent in json.loads(parents):
+                    if parent not in depth:
+                        depth[parent] = depth[child] + 1
+                        nxt.append(parent)
+            frontier = nxt
+        ids = list(depth)
+        marks = ", ".join("?" * len(ids))
+        frame = self._decode(self._query(f"SELECT * FROM members WHERE id IN ({marks})", ids), "members")
+        frame.insert(1, "depth", frame["id"].map(depth))
+        cols = ["id", "depth", "generation", "algorithm", "run", "parents", "status"]
+        return frame[cols].sort_values(["depth", "generation", "id"], ascending=[True, False, True], ignore_index=True)
+
+    # -------------------------------------------------------------- export
+    def export(self, path: str | os.PathLike[str], format: str = "csv", table: str = "members") -> Path:
+        """Write one table to ``path`` as CSV or Parquet, whole or not at all (temp file + rename).
+
+        JSON columns are written as JSON text, so the file round-trips without loss.
+        Returns the path.
+        """
+        if format not in EXPORT_FORMATS:
+            raise RegistryError(f"format must be one of {EXPORT_FORMATS}, got {format!r}")
+        if table not in TABLES:
+            raise RegistryError(f"table must be one of {TABLES}, got {table!r}")
+        order = "id" if table == "matches" else ("rowid" if table == "members" else "run, idx")
+        frame = self._query(f"SELECT * FROM {table} ORDER BY {order}")
+        out = Path(path)
+        if format == "csv":
+            _replace_atomically(out, lambda tmp: frame.to_csv(tmp, index=False))
+        else:
+            _replace_atomically(out, lambda tmp: frame.to_parquet(tmp, index=False))
+        return out
+
+
+def _isnull(value: Any) -> bool:
+    return value is None or (isinstance(value, float) and value != value)
+
+
+# ------------------------------------------------------------------- Ray
+@functools.cache
+def _actor_class() -> Any:
+    import ray
+
+    return ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(Registry)
+
+
+def __getattr__(name: str) -> Any:
+    """``RegistryActor`` is built on first use, so importing this module does not import Ray."""
+    if name == "RegistryActor":
+        return _actor_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def registry_actor(
+    path: str | os.PathLike[str] | None = None, name: str = DEFAULT_ACTOR_NAME, *, detached: bool = False
+) -> Any:
+    """Get or create the registry actor ``name`` in namespace ``atdrone``, serving the file ``path``.
+
+    Lifetime: by default the actor belongs to the driver that creates it (the service
+    run): it lives as long as that job, other drivers on the cluster can use it by name
+    meanwhile, and the next run starts a fresh actor on the same file. ``detached=True``
+    makes it outlive the driver (a standing registry service; end it with ``ray.kill``).
+    An existing actor that serves a different file is refused with RegistryError.
+
+    Retries: a call in flight when the actor dies is retried after the restart; a retried
+    ``add_member`` without ``member_id`` may then register twice, so callers that need
+    exactly-once pass an id from :func:`new_member_id` (a retry then fails as a duplicate).
+    """
+    import ray
+
+    file = str(Path(path if path is not None else default_path()).resolve())
+    handle = (
+        _actor_class()
+        .options(name=name, namespace=REGISTRY_NAMESPACE, get_if_exists=True, lifetime="detached" if detached else None)
+        .remote(file)
+    )
+    served = ray.get(handle.db_path.remote())
+    if served != file:
+        raise RegistryError(f"registry actor {name!r} already serves {served}, not {file}")
+    return handle
+
+
+def find_registry_actor(name: str = DEFAULT_ACTOR_NAME) -> Any:
+    """The running registry actor ``name`` in namespace ``atdrone`` (ValueError when there is none)."""
+    import ray
+
+    return ray.get_actor(name, namespace=REGISTRY_NAMESPACE)

@@ -1,0 +1,432 @@
+"""The population registry: members, matches, generations, pandas views, export, CLI, and the Ray actor."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from atdrone.cli import main
+from atdrone.registry import Registry, RegistryError, default_path
+
+TASK = "4p2e5o"
+RESULT = {"SUC": 50.0, "COL": 10.0, "AST": 80.0, "REW": 1.5}
+
+
+@pytest.fixture
+def registry(tmp_path: Path) -> Registry:
+    with Registry(tmp_path / "registry.db") as reg:
+        yield reg
+
+
+def _add(reg: Registry, generation: int = 0, parents: tuple[str, ...] = (), **fields) -> str:
+    fields.setdefault("run", "hola-quick")
+    fields.setdefault("algorithm", "hola")
+    fields.setdefault("task", TASK)
+    return reg.add_member(generation=generation, parents=parents, **fields)
+
+
+def _metrics(suc: float, ast: float = 80.0) -> dict[str, float]:
+    return {**RESULT, "SUC": suc, "AST": ast}
+
+
+# ------------------------------------------------------------------ members
+def test_add_member_generates_an_id_and_reads_back_every_field(registry: Registry) -> None:
+    mid = registry.add_member(
+        run="hola-quick",
+        algorithm="HOLA-Drone V2",
+        generation=3,
+        task=TASK,
+        checkpoint=Path("runs/a.pt"),
+        sha256="ab" * 32,
+        mlflow_run_id="r1",
+        tags={"role": "learner"},
+        metrics={"eta": 0.25},
+    )
+    assert mid.startswith("hola-drone-v2-g3-") and len(mid.rsplit("-", 1)[1]) == 6
+    member = registry.member(mid)
+    assert member["generation"] == 3 and member["parents"] == [] and member["status"] == "active"
+    assert member["checkpoint"] == "runs/a.pt" and member["sha256"] == "ab" * 32 and member["mlflow_run_id"] == "r1"
+    assert member["tags"] == {"role": "learner"} and member["metrics"] == {"eta": 0.25}
+    other = registry.add_member(
+        run="r", algorithm="sp", generation=np.int64(0), task=TASK, metrics={"loss": np.float32(0.5), "v": np.ones(2)}
+    )
+    assert other != mid and registry.member(other)["metrics"] == {"loss": 0.5, "v": [1.0, 1.0]}
+
+
+def test_duplicate_id_is_refused_and_the_first_member_kept(registry: Registry) -> None:
+    _add(registry, member_id="m1", tags={"first": True})
+    with pytest.raises(RegistryError, match="'m1' is already registered"):
+        _add(registry, member_id="m1")
+    assert registry.member("m1")["tags"] == {"first": True} and len(registry.members()) == 1
+
+
+def test_update_member_merges_metrics_and_tags_and_replaces_the_rest(registry: Registry) -> None:
+    mid = _add(registry, metrics={"eta": 0.5, "SUC": 10.0}, tags={"a": 1})
+    updated = registry.update_member(mid, metrics={"SUC": 20.0, "COL": 5.0}, tags={"b": 2}, status="retired")
+    assert updated["metrics"] == {"eta": 0.5, "SUC": 20.0, "COL": 5.0} and updated["tags"] == {"a": 1, "b": 2}
+    registry.update_member(mid, mlflow_run_id="run-9", checkpoint="b.pt", sha256="cd" * 32)
+    member = registry.member(mid)
+    assert (member["status"], member["mlflow_run_id"], member["checkpoint"]) == ("retired", "run-9", "b.pt")
+    assert member["sha256"] == "cd" * 32
+
+
+def test_unknown_ids_bad_fields_and_unregistered_parents_get_clear_errors(registry: Registry) -> None:
+    with pytest.raises(KeyError, match="no member 'ghost'"):
+        registry.member("ghost")
+    with pytest.raises(KeyError, match="no member 'ghost'"):
+        registry.update_member("ghost", status="retired")
+    mid = _add(registry)
+    with pytest.raises(RegistryError, match="status must be one of"):
+        registry.update_member(mid, status="lost")
+    with pytest.raises(RegistryError, match=r"parents \['ghost'\] are not registered"):
+        _add(registry, generation=1, parents=("ghost",))
+    with pytest.raises(RegistryError, match="generation must be an integer"):
+        _add(registry, generation=1.5)
+
+
+def test_members_filter_by_run_task_and_status(registry: Registry) -> None:
+    a = _add(registry, run="r1")
+    b = _add(registry, run="r2", task="4p2e1o")
+    registry.update_member(b, status="retired")
+    assert registry.members()["id"].tolist() == [a, b]
+    assert registry.members(run="r1")["id"].tolist() == [a]
+    assert registry.members(task="4p2e1o")["id"].tolist() == [b]
+    assert registry.members(status="active")["id"].tolist() == [a]
+    assert registry.members(run="r1", status="retired").empty
+
+
+def test_add_checkpoint_takes_task_algorithm_and_sha256_from_the_header(registry: Registry, tmp_path: Path) -> None:
+    from atdrone.algos.networks import ActorCritic, NetConfig
+    from atdrone.checkpoint import save_checkpoint
+
+    path = tmp_path / "learner.pt"
+    header = save_checkpoint(
+        path,
+        ActorCritic(NetConfig(entity_dim=8, hidden=8)),
+        {"task": "4p2e1o", "num_p": 4, "num_e": 2, "algorithm": "ippo"},
+    )
+    mid = registry.add_checkpoint(path, run="r", generation=2, tags={"from": "file"})
+    member = registry.member(mid)
+    assert (member["task"], member["algorithm"], member["sha256"]) == ("4p2e1o", "ippo", header["sha256"])
+    assert member["checkpoint"] == str(path) and mid.startswith("ippo-g2-")
+
+
+# -------------------------------------------------------- matches, crossplay
+@pytest.fixture
+def played(registry: Registry) -> tuple[Registry, str, str, str]:
+    """Three members and five matches; the cross-play values are worked out in the test below."""
+    a, b, c = (_add(registry, member_id=m) for m in "abc")
+    registry.add_match([a, a, a, a], TASK, "hola-quick", 0, [0], 10, _metrics(40.0))
+    registry.add_match([a, a, a, a], TASK, "hola-quick", 0, [1], 10, _metrics(60.0))
+    registry.add_match([a, a, b, b], TASK, "hola-quick", 1, [0, 1], 20, _metrics(30.0, ast=math.nan))
+    registry.add_match([a, b, c, c], TASK, "hola-quick", 1, [0], 10, _metrics(90.0, ast=100.0))
+    registry.add_match([b, b, b, b], "4p2e1o", "hola-quick", 1, [0], 10, _metrics(10.0))
+    return registry, a, b, c
+
+
+def test_matches_are_recorded_with_team_order_seeds_and_metrics(played: tuple[Registry, str, str, str]) -> None:
+    registry, a, b, c = played
+    frame = registry.matches(task=TASK)
+    assert frame["id"].tolist() == [1, 2, 3, 4]
+    assert frame["team"][3] == [a, b, c, c] and frame["seeds"][2] == [0, 1] and frame["episodes"][2] == 20
+    assert frame["SUC"].tolist() == [40.0, 60.0, 30.0, 90.0] and math.isnan(frame["AST"][2])
+    assert len(registry.matches()) == 5 and len(registry.matches(run="other")) == 0
+
+
+def test_crossplay_matrix_matches_the_hand_computed_means(played: tuple[Registry, str, str, str]) -> None:
+    registry, a, b, c = played
+    nan = math.nan
+    # a alone: (40 + 60) / 2; a with b: (30 + 90) / 2; a-c and b-c only share match 4; b and c never alone on 4p2e5o
+    expected = pd.DataFrame(
+        [[50.0, 60.0, 90.0], [60.0, nan, 90.0], [90.0, 90.0, nan]], index=[a, b, c], columns=[a, b, c]
+    )
+    got = registry.crossplay(task=TASK)
+    pd.testing.assert_frame_equal(got, expected, check_names=False)
+    assert (got.index.name, got.columns.name) == ("member", "partner")
+    assert registry.crossplay()[b][b] == 10.0  # the 4p2e1o self-play match counts without a task filter
+    ast = registry.crossplay(task=TASK, metric="AST")
+    assert ast[a][b] == 100.0 and ast[a][a] == 80.0  # NaN AST (no success) is left out of the mean
+    with pytest.raises(RegistryError, match="metric must be one of"):
+        registry.crossplay(metric="WIN")
+    assert registry.crossplay(task="4p3e5o").empty
+
+
+def test_add_match_refuses_missing_metrics_and_empty_teams(registry: Registry) -> None:
+    with pytest.raises(RegistryError, match=r"lack \['REW'\]"):
+        registry.add_match(["a"], TASK, "r", 0, [0], 1, {"SUC": 1.0, "COL": 0.0, "AST": 3.0})
+    with pytest.raises(RegistryError, match="at least one member"):
+        registry.add_match([], TASK, "r", 0, [0], 1, RESULT)
+    with pytest.raises(RegistryError, match="episodes must be an integer >= 1"):
+        registry.add_match(["a"], TASK, "r", 0, [0], 0, RESULT)
+
+
+# ------------------------------------------------------------------ lineage
+def test_lineage_walks_three_generations_of_parents(registry: Registry) -> None:
+    p1, p2, p3 = (_add(registry, 0, member_id=m) for m in ("p1", "p2", "p3"))
+    c1 = _add(registry, 1, (p1, p2), member_id="c1")
+    c2 = _add(registry, 1, (p2,), member_id="c2")
+    _add(registry, 1, (p3,), member_id="c3")  # not an ancestor
+    d = _add(registry, 2, (c1, c2), member_id="d")
+    frame = registry.lineage(d)
+    assert frame["id"].tolist() == [d, c1, c2, p1, p2]
+    assert frame["depth"].tolist() == [0, 1, 1, 2, 2]  # p2 is reached twice, at depth 2 both times
+    assert frame["generation"].tolist() == [2, 1, 1, 0, 0]
+    assert frame["parents"][0] == [c1, c2]
+    assert registry.lineage(p3)["id"].tolist() == [p3]
+    with pytest.raises(KeyError, match="no member 'ghost'"):
+        registry.lineage("ghost")
+
+
+# -------------------------------------------------------------- generations
+def test_generations_and_the_last_completed_one(registry: Registry) -> None:
+    assert registry.last_completed_generation("r") is None
+    registry.start_generation("r", 0, {"profiles": 4})
+    assert registry.last_completed_generation("r") is None
+    registry.finish_generation("r", 0, {"members": 6})
+    registry.start_generation("r", 1)
+    registry.start_generation("other", 5)
+    registry.finish_generation("other", 5)
+    assert registry.last_completed_generation("r") == 0 and registry.last_completed_generation("other") == 5
+    frame = registry.generations("r")
+    assert frame["idx"].tolist() == [0, 1] and frame["info"][0] == {"profiles": 4, "members": 6}
+    assert frame["finished"].notna().tolist() == [True, False]
+    registry.finish_generation("r", 1)
+    registry.start_generation("r", 1)  # a restarted generation is no longer finished
+    assert registry.last_completed_generation("r") == 0
+    with pytest.raises(RegistryError, match="never started"):
+        registry.finish_generation("r", 7)
+
+
+# ------------------------------------------------------------------- export
+def _loaded(path: Path, fmt: str, table: str) -> pd.DataFrame:
+    frame = pd.read_csv(path) if fmt == "csv" else pd.read_parquet(path)
+    columns = {"members": ("parents", "tags", "metrics"), "matches": ("team", "seeds"), "generations": ("info",)}
+    for col in columns[table]:
+        frame[col] = [json.loads(v) for v in frame[col]]
+    return frame
+
+
+def _comparable(frame: pd.DataFrame) -> pd.DataFrame:
+    frame = frame.astype(object)
+    return frame.where(frame.notna(), None).reset_index(drop=True)
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_export_round_trips_every_table(played: tuple[Registry, str, str, str], tmp_path: Path, fmt: str) -> None:
+    registry, a, *_ = played
+    registry.update_member(a, metrics={"eta": 1 / 3}, tags={"x": [1, 2]})
+    registry.start_generation("hola-quick", 0, {"n": 1})
+    views = {"members": registry.members(), "matches": registry.matches(), "generations": registry.generations()}
+    for table, view in views.items():
+        out = registry.export(tmp_path / "out" / f"{table}.{fmt}", format=fmt, table=table)
+        pd.testing.assert_frame_equal(_comparable(_loaded(out, fmt, table)), _comparable(view), check_dtype=False)
+
+
+def test_failed_export_leaves_the_old_file_and_no_temp_file(
+    registry: Registry, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _add(registry)
+    out = tmp_path / "members.parquet"
+    out.write_bytes(b"old")
+
+    def broken(self: pd.DataFrame, path: str, **kwargs: object) -> None:
+        Path(path).write_bytes(b"half")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(pd.DataFrame, "to_parquet", broken)
+    with pytest.raises(OSError, match="disk full"):
+        registry.export(out, format="parquet")
+    assert out.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".members")] == []  # the temp file is gone
+    with pytest.raises(RegistryError, match="format must be one of"):
+        registry.export(out, format="xlsx")
+
+
+# -------------------------------------------------------------------- sqlite
+def test_the_file_is_in_wal_mode_with_a_schema_version(registry: Registry) -> None:
+    conn = sqlite3.connect(registry.path)
+    try:
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert conn.execute("SELECT version FROM schema_version").fetchall() == [(1,)]
+    finally:
+        conn.close()
+    assert registry.journal_mode == "wal"
+
+
+def test_a_file_from_a_newer_schema_or_not_a_registry_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "r.db"
+    Registry(path).close()
+    conn = sqlite3.connect(path)
+    conn.execute("UPDATE schema_version SET version = 99")
+    conn.commit()
+    conn.close()
+    with pytest.raises(RegistryError, match="schema v99"):
+        Registry(path)
+    other = tmp_path / "other.db"
+    other.write_bytes(b"")  # an empty sqlite database
+    with pytest.raises(RegistryError, match="not an atdrone registry"):
+        Registry(other, create=False)
+    with pytest.raises(FileNotFoundError, match="no registry at"):
+        Registry(tmp_path / "missing.db", create=False)
+
+
+def test_concurrent_writers_on_one_file_lose_nothing(tmp_path: Path) -> None:
+    path = tmp_path / "shared.db"
+    first, second = Registry(path), Registry(path)
+    shared = first.add_member(run="r", algorithm="sp", generation=0, task=TASK)
+    n = 40
+
+    def work(reg: Registry, name: str) -> None:
+        for i in range(n):
+            reg.add_member(run=name, algorithm="sp", generation=i, task=TASK)
+            reg.update_member(shared, metrics={f"{name}{i}": i})  # read-modify-write: must not drop the other's keys
+            reg.add_match([shared], TASK, name, i, [i], 1, RESULT)
+
+    threads = [threading.Thread(target=work, args=(reg, name)) for reg, name in ((first, "x"), (second, "y"))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    with Registry(path) as fresh:
+        assert len(fresh.members(run="x")) == n and len(fresh.members(run="y")) == n
+        assert len(fresh.member(shared)["metrics"]) == 2 * n
+        assert len(fresh.matches()) == 2 * n
+    first.close()
+    second.close()
+
+
+def test_default_path_honours_the_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.delenv("ATDRONE_REGISTRY", raising=False)
+    assert default_path() == Path("registry.db")
+    monkeypatch.setenv("ATDRONE_REGISTRY", str(tmp_path / "pop.db"))
+    assert default_path() == tmp_path / "pop.db"
+
+
+def test_importing_the_registry_does_not_import_ray() -> None:
+    code = "import sys, atdrone.registry; assert 'ray' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ---------------------------------------------------------------------- CLI
+def test_cli_list_show_crossplay_lineage(
+    played: tuple[Registry, str, str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    registry, a, b, _ = played
+    child = _add(registry, 1, (a, b), member_id="child", run="r2")
+    db = str(registry.path)
+    assert main(["registry", "--db", db, "list"]) == 0
+    out = capsys.readouterr().out
+    assert all(m in out for m in ("a", "b", "c", child)) and "generation" in out
+    assert main(["registry", "list", "--db", db, "--run", "r2"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].split()[0] == child
+    assert main(["registry", "--db", db, "list", "--status", "retired"]) == 0
+    assert capsys.readouterr().out.strip() == "(no members)"
+    assert main(["registry", "--db", db, "show", child]) == 0
+    out = capsys.readouterr().out
+    assert "parents" in out and "[a, b]" in out and "r2" in out
+    assert main(["registry", "--db", db, "crossplay", "--task", TASK]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["partner", "a", "b", "c"] and lines[2].split() == ["a", "50.0", "60.0", "90.0"]
+    assert main(["registry", "--db", db, "lineage", child]) == 0
+    assert [line.split()[0] for line in capsys.readouterr().out.splitlines()[1:]] == [child, "a", "b"]
+
+
+def test_cli_export_writes_a_readable_file(
+    played: tuple[Registry, str, str, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    registry, *_ = played
+    out = tmp_path / "m.parquet"
+    argv = ["registry", "--db", str(registry.path), "export", "--format", "parquet", "--table", "matches"]
+    assert main([*argv, "--out", str(out)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    assert pd.read_parquet(out)["SUC"].tolist() == registry.matches()["SUC"].tolist()
+
+
+def test_cli_reports_unknown_ids_and_missing_files_in_one_line(
+    registry: Registry, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["registry", "--db", str(registry.path), "show", "ghost"]) == 2
+    assert (
+        capsys.readouterr().err.strip()
+        == f"atdrone registry: error: no member 'ghost' in the registry at {registry.path}"
+    )
+    missing = tmp_path / "nowhere.db"
+    assert main(["registry", "--db", str(missing), "list"]) == 2
+    assert capsys.readouterr().err.strip() == f"atdrone registry: error: no registry at {missing}"
+    assert not missing.exists()
+    assert main(["registry", "--db", str(registry.path), "crossplay", "--metric", "WIN"]) == 2
+    assert "metric must be one of" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- Ray
+@pytest.fixture(scope="module")
+def ray_cluster():
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_actor_serves_the_registry_and_a_second_driver_finds_it_by_name(ray_cluster, tmp_path: Path) -> None:
+    from atdrone.registry import REGISTRY_NAMESPACE, RegistryActor, registry_actor
+
+    ray = ray_cluster
+    path = tmp_path / "served.db"
+    actor = registry_actor(path, name="registry-test")
+    try:
+        assert isinstance(actor, ray.actor.ActorHandle) and RegistryActor is not None
+        mid = ray.get(actor.add_member.remote(run="svc", algorithm="hola", generation=0, task=TASK, tags={"k": 1}))
+        ray.get(actor.add_match.remote([mid], TASK, "svc", 0, [0], 4, RESULT))
+        assert ray.get(actor.member.remote(mid))["tags"] == {"k": 1}
+        assert ray.get(actor.crossplay.remote())[mid][mid] == RESULT["SUC"]
+        with pytest.raises(KeyError):
+            ray.get(actor.member.remote("ghost"))
+        with Registry(path, create=False) as direct:  # written through to the file
+            assert direct.member(mid)["run"] == "svc"
+        assert registry_actor(path, name="registry-test")._actor_id == actor._actor_id  # get-or-create
+        with pytest.raises(RegistryError, match="already serves"):
+            registry_actor(tmp_path / "other.db", name="registry-test")
+
+        code = (
+            "import ray\n"
+            f"ray.init(address={ray.get_runtime_context().gcs_address!r}, log_to_driver=False)\n"
+            f"actor = ray.get_actor('registry-test', namespace={REGISTRY_NAMESPACE!r})\n"
+            f"print('ALGORITHM', ray.get(actor.member.remote({mid!r}))['algorithm'])\n"
+        )
+        env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+        second = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
+        assert second.returncode == 0, second.stderr[-2000:]
+        assert "ALGORITHM hola" in second.stdout
+    finally:
+        ray.kill(actor, no_restart=True)
+
+
+def test_killed_actor_restarts_and_reloads_the_members_from_sqlite(ray_cluster, tmp_path: Path) -> None:
+    from atdrone.registry import registry_actor
+
+    ray = ray_cluster
+    actor = registry_actor(tmp_path / "restart.db", name="registry-restart")
+    try:
+        ids = [ray.get(actor.add_member.remote(run="svc", algorithm="sp", generation=g, task=TASK)) for g in range(3)]
+        pid = ray.get(actor.__ray_call__.remote(lambda self: os.getpid()))
+        ray.kill(actor, no_restart=False)
+        deadline = time.monotonic() + 30  # the kill is asynchronous: wait for the new process
+        while ray.get(actor.__ray_call__.remote(lambda self: os.getpid())) == pid:
+            assert time.monotonic() < deadline, "the registry actor was not restarted"
+            time.sleep(0.05)
+        assert ray.get(actor.members.remote())["id"].tolist() == ids  # the new process reads every member back
+        assert ray.get(actor.last_completed_generation.remote("svc")) is None
+    finally:
+        ray.kill(actor, no_restart=True)
