@@ -31,7 +31,7 @@ from atdrone.config import load_task
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.registry import find_registry_actor, new_member_id
 from atdrone.service.actors import LearnerActor, RolloutWorkerActor
-from atdrone.service.experiment import ExperimentConfig
+from atdrone.service.experiment import ExperimentConfig, registry_name
 
 
 @ray.remote(num_cpus=0, max_restarts=0)
@@ -45,7 +45,7 @@ class Coordinator:
         self.task = load_task(cfg.task)
         self.ppo = ppo_config(cfg.ppo, cfg.preset)
         self.net = NetConfig(entity_dim=self.ppo.entity_dim, hidden=self.ppo.hidden, init_log_std=self.ppo.init_log_std)
-        self.registry = find_registry_actor()
+        self.registry = find_registry_actor(registry_name(cfg.name))
         self.num_p = self.task.players.num_p
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from atdrone.checkpoint import atomic_write_bytes
-from atdrone.service.experiment import ExperimentConfig
+from atdrone.service.experiment import ExperimentConfig, registry_name
 
 log = logging.getLogger(__name__)
 STATE_FILE = "service_state.json"
@@ -82,7 +82,7 @@ def run_experiment(
     run_dir.mkdir(parents=True, exist_ok=True)
     _write_json(run_dir / "config.json", cfg.to_dict())
     init_ray(address, num_cpus)
-    registry = registry_actor(run_dir / "registry.db")
+    registry = registry_actor(run_dir / "registry.db", name=registry_name(cfg.name))
     coordinator = Coordinator.remote(cfg, str(run_dir), saved.get("coordinator"))
     tracker = Tracker(tracking_uri)
     reports: list[dict[str, Any]] = []

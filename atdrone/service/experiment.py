@@ -98,3 +98,8 @@ def load_experiment(path_or_doc: str | Path | dict[str, Any], **overrides: Any) 
     if cfg.pbt_perturb <= 1.0:
         raise ConfigError("pbt_perturb", f"must be > 1, got {cfg.pbt_perturb}")
     return cfg
+
+
+def registry_name(run: str) -> str:
+    """The name of a run's registry actor in namespace "atdrone" (another driver finds it by this name)."""
+    return f"registry-{run}"

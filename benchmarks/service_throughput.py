@@ -1,0 +1,102 @@
+"""Throughput of the Ray population service on this machine, printed as JSON.
+
+1. Rollout scaling: pursuer-steps/s of rollout collection with 2 Ray rollout workers vs 1
+   (same environments per worker; target >= 1.6x).
+2. Self-play through the service (coordinator + 2 workers + a learner actor) vs the
+   single-process trainer with the same total environments (target >= 80 %).
+Usage: python benchmarks/service_throughput.py [--task 4p2e1o] [--updates 6]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+
+import ray
+
+
+def rollout_rate(workers: list, weights: object, steps: int, rounds: int) -> float:
+    ray.get([w.collect.remote(weights, [], None, 4, steps) for w in workers])  # warm-up
+    start, samples = time.perf_counter(), 0
+    for _ in range(rounds):
+        frags = ray.get([w.collect.remote(weights, [], None, 4, steps) for w in workers])
+        samples += sum(f.samples for f in frags)
+    return samples / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="4p2e1o")
+    parser.add_argument("--updates", type=int, default=6)
+    parser.add_argument("--envs-per-worker", type=int, default=32)
+    args = parser.parse_args()
+
+    from atdrone.algos.networks import ActorCritic, NetConfig
+    from atdrone.algos.trainer import Trainer, load_train_config
+    from atdrone.config import load_task
+    from atdrone.service.actors import RolloutWorkerActor
+    from atdrone.service.driver import init_ray
+
+    init_ray(None, num_cpus=2)
+    task, net = load_task(args.task), NetConfig()
+    weights = ray.put(ActorCritic(net).state_dict())
+    workers = [RolloutWorkerActor.remote(task, args.envs_per_worker, i, net, 0.99) for i in range(2)]
+    one = rollout_rate(workers[:1], weights, 128, 4)
+    two = rollout_rate(workers, weights, 128, 4)
+    for w in workers:
+        ray.kill(w)
+
+    # self-play: the service path vs the single-process trainer, same envs and PPO settings
+    from atdrone.registry import registry_actor
+    from atdrone.service.coordinator import Coordinator
+    from atdrone.service.experiment import load_experiment
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = load_experiment(
+            {
+                "name": "bench",
+                "algorithm": "sp",
+                "task": args.task,
+                "num_workers": 2,
+                "envs_per_worker": args.envs_per_worker,
+                "updates_per_generation": args.updates,
+                "out_dir": tmp,
+            },
+        )
+        registry_actor(f"{tmp}/registry.db")
+        coord = Coordinator.remote(cfg, f"{tmp}/bench")
+        report = ray.get(coord.run_generation.remote())
+        service = [r["perf/pursuer_steps_per_s"] for r in next(iter(report["history"].values()))][1:]
+        service_rate = sum(service) / len(service)
+        ray.kill(coord)
+        trainer = Trainer(
+            load_train_config(
+                {"name": "bench", "task": args.task, "out_dir": tmp, "ppo": {"num_envs": 2 * args.envs_per_worker}}
+            )
+        )
+        trainer.update_once()
+        local = [trainer.update_once()["perf/pursuer_steps_per_s"] for _ in range(args.updates - 1)]
+        local_rate = sum(local) / len(local)
+    print(
+        json.dumps(
+            {
+                "benchmark": "service_throughput",
+                "task": args.task,
+                "unit": "pursuer-steps/s",
+                "rollout_1_worker": round(one, 1),
+                "rollout_2_workers": round(two, 1),
+                "rollout_scaling": round(two / one, 2),
+                "service_self_play": round(service_rate, 1),
+                "single_process_self_play": round(local_rate, 1),
+                "service_vs_single_process": round(service_rate / local_rate, 2),
+                "targets": {"rollout_scaling": 1.6, "service_vs_single_process": 0.8},
+            },
+            indent=2,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""The Ray population service on a real local Ray (num_cpus=2), a real MLflow store and sqlite."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import mlflow
+import pytest
+import ray
+
+from atdrone.checkpoint import read_header
+from atdrone.registry import Registry
+from atdrone.service.driver import STATE_FILE, run_experiment
+from atdrone.service.experiment import load_experiment
+
+TINY = {
+    "task": "4p2e1o",
+    "updates_per_generation": 1,
+    "num_workers": 2,
+    "envs_per_worker": 4,
+    "rollout_steps": 16,
+    "eval_episodes": 4,
+    "population_size": 3,
+    "final_zoo": "zoo1",
+    "final_episodes": 4,
+    "gif": False,
+    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64},
+}
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray.init(num_cpus=2, include_dashboard=False, namespace="atdrone", log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def _cfg(tmp_path, name, **kw):
+    return load_experiment({**TINY, "name": name, "out_dir": str(tmp_path), **kw})
+
+
+def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    cfg = _cfg(tmp_path, "hola_t", algorithm="hola", generations=3)
+    summary = run_experiment(cfg, tracking_uri=uri, progress=False)
+    reg = Registry(tmp_path / "hola_t" / "registry.db")
+    members = reg.members(run="hola_t")
+    # generation 0 bootstraps with a self-play learner, then one best-response learner per generation
+    assert sorted(members["generation"]) == [0, 1, 2]
+    assert list(members["status"]) == ["active"] * 3
+    g0, g1, g2 = members.sort_values("generation")["id"]
+    assert list(members.sort_values("generation")["parents"]) == [[], [g0], [g1]]
+    for _, m in members.iterrows():
+        assert read_header(m["checkpoint"])["sha256"] == m["sha256"]
+    # generation 2 played the hyperedges touching generation 1's learner: only (g1, g1, g0, g0)
+    matches = reg.matches(run="hola_t")
+    assert [sorted(t) for t in matches["team"]] == [sorted([g1, g1, g0, g0])]
+    assert set(matches["generation"]) == {2}
+    report = summary["reports"][2]
+    assert set(report["rho"]) == {g0, g1} and abs(sum(report["rho"].values()) - 1) < 1e-9
+    assert list(summary["population"]["member"]) == [g0, g1, g2]
+    assert {"zoo1_SUC", "zoo1_COL", "zoo1_AST", "zoo1_REW"} <= set(summary["population"].columns)
+
+    client = mlflow.MlflowClient(uri)
+    parent = client.get_run(summary["mlflow_run_id"])
+    assert parent.data.params["experiment.algorithm"] == "hola"
+    runs = client.search_runs([parent.info.experiment_id])
+    by_id = {r.info.run_id: r for r in runs}
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
+    assert {r.info.run_name for r in children} == {"generation-0", "generation-1", "generation-2"}
+    # one nested run per learner, inside its generation's run
+    learners = {
+        r.info.run_name: by_id[r.data.tags["mlflow.parentRunId"]].info.run_name
+        for r in runs
+        if r.info.run_name.startswith("learner-")
+    }
+    assert learners == {
+        f"learner-{g0}": "generation-0",
+        f"learner-{g1}": "generation-1",
+        f"learner-{g2}": "generation-2",
+    }
+    learner = next(r for r in runs if r.info.run_name == f"learner-{g2}")
+    assert "train/policy_loss" in learner.data.metrics
+    assert [a.path for a in client.list_artifacts(learner.info.run_id, "checkpoints")] == [f"checkpoints/{g2}.pt"]
+    gen2 = next(r for r in children if r.info.run_name == "generation-2")
+    assert "pop/rho_entropy" in gen2.data.metrics
+    assert {a.path for a in client.list_artifacts(gen2.info.run_id)} >= {"hypergraph.json", "hypergraph.png"}
+    top = {a.path for a in client.list_artifacts(parent.info.run_id)}
+    assert {"config.json", "population.csv", "best_member_header.json"} <= top
+    version = client.get_model_version_by_alias("atdrone-hola_t", "champion")
+    assert version.tags["member"] == summary["best"]
+
+
+def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp_path):
+    from atdrone.registry import registry_actor
+    from atdrone.service.coordinator import Coordinator
+    from atdrone.service.experiment import registry_name
+
+    cfg = _cfg(tmp_path, "kill_t", algorithm="sp", generations=1, updates_per_generation=6, rollout_steps=64)
+    registry_actor(tmp_path / "kill.db", name=registry_name(cfg.name))
+    coordinator = Coordinator.remote(cfg, str(tmp_path / "kill_t"))
+    pids = ray.get(coordinator.worker_pids.remote())
+    workers = ray.get(coordinator.workers_handles.remote())
+    pending = coordinator.run_generation.remote()
+    time.sleep(4.0)
+    ray.kill(workers[0], no_restart=False)
+    report = ray.get(pending, timeout=240)
+    assert len(report["history"][report["learners"][0]]) == 6  # every update got its fragments
+    new_pids = ray.get(coordinator.worker_pids.remote())
+    assert new_pids[0] != pids[0] and new_pids[1] == pids[1]
+
+
+def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    cfg = _cfg(tmp_path, "resume_t", algorithm="hola", generations=3)
+    first = run_experiment(cfg, tracking_uri=uri, progress=False, stop_after=2)
+    assert first["stopped"]
+    run_dir = tmp_path / "resume_t"
+    saved = json.loads((run_dir / STATE_FILE).read_text())
+    reg = Registry(run_dir / "registry.db")
+    before = reg.members(run="resume_t").set_index("id")
+    assert saved["coordinator"]["generation"] == 2
+    assert saved["coordinator"]["population"] == list(before.index)
+    with pytest.raises(FileExistsError):
+        run_experiment(cfg, tracking_uri=uri, progress=False)
+    second = run_experiment(cfg, tracking_uri=uri, resume=True, progress=False)
+    assert [r["generation"] for r in second["reports"]] == [2]
+    after = reg.members(run="resume_t").set_index("id")
+    # what was saved is untouched: same members, same checkpoints byte for byte
+    assert list(after.index[:2]) == list(before.index)
+    for member in before.index:
+        assert after.loc[member, "sha256"] == before.loc[member, "sha256"]
+        assert read_header(after.loc[member, "checkpoint"])["sha256"] == before.loc[member, "sha256"]
+    # the resumed generation warm-started from the saved learner and continued its lineage
+    (g2,) = second["reports"][0]["learners"]
+    assert after.loc[g2, "parents"] == [before.index[-1]]
+    assert second["mlflow_run_id"] == first["mlflow_run_id"]
