@@ -21,12 +21,14 @@ install: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check atdrone tests benchmarks jobs
 	$(BIN)/ruff format --check atdrone tests benchmarks jobs
+	$(BIN)/mypy
 
 test: lint
 	$(BIN)/python -m pytest -q
 
+# the quick HOLA-Drone V2 run on a local Ray (a fresh run name each time; <= 10 min on 2 cores)
 demo: $(STAMP)
-	$(BIN)/atdrone demo
+	$(BIN)/atdrone train configs/experiments/hola_quick.json --name hola_quick_$$(date +%Y%m%d_%H%M%S)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/env_throughput.py

@@ -155,6 +155,7 @@ class RolloutWorker:
                 if len(timeout):
                     fs = None
                     if central:
+                        assert self.core.final_state is not None  # set by the core at every episode end
                         fs = global_state(self.core.final_state, self.core.geometry, self.core.num_p)[timeout]
                     rewards[t, timeout] += self.gamma * self._values(info["final_obs"][timeout], fs)
                 for i in idx:

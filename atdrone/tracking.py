@@ -84,7 +84,8 @@ class Tracker:
 
     def log_params(self, params: Mapping[str, Any]) -> None:
         flat = _flatten(params)
-        existing = self.mlflow.active_run().data.params if self.mlflow.active_run() else {}
+        active = self.mlflow.active_run()
+        existing = self.mlflow.get_run(active.info.run_id).data.params if active is not None else {}
         fresh = {k: v for k, v in flat.items() if k not in existing}
         if fresh:
             self.mlflow.log_params(fresh)

@@ -35,7 +35,11 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A training run. ``ppo`` overrides the ``preset`` (see atdrone.algos.ppo.PRESETS)."""
+    """A training run. ``ppo`` overrides the ``preset`` (see atdrone.algos.ppo.PRESETS).
+
+    init_checkpoint: start from this policy's weights (e.g. a best response fine-tuned
+    from a self-play drone); its architecture must match the PPO config's.
+    """
 
     name: str
     task: str
@@ -53,6 +57,7 @@ class TrainConfig:
     torch_threads: int = 1
     device: str = "auto"
     experiment: str = ""
+    init_checkpoint: str = ""
 
 
 def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> TrainConfig:
@@ -99,6 +104,13 @@ class Trainer:
         torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
         self.model = ActorCritic(self.net).to(self.device)
+        if cfg.init_checkpoint:
+            from atdrone.checkpoint import load_checkpoint
+
+            start, _ = load_checkpoint(cfg.init_checkpoint, expect_task=self.task.name)
+            if start.cfg != self.net:
+                raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}")
+            self.model.load_state_dict(start.state_dict())
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.ppo.lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.partners: list[Policy] = load_zoo(cfg.zoo).policies() if cfg.mode == "best_response" else []

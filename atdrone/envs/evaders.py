@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from atdrone.envs.geometry import Geometry, pick_nearest, signed_distances
+from atdrone.envs.geometry import Geometry, obstacle_distances, pick_nearest, signed_distances
 
 
 @dataclass(frozen=True)
@@ -142,5 +142,5 @@ def move_evaders(
     if not blocked.any():
         return cand
     slid = cand - np.minimum((delta * n).sum(-1), 0.0)[..., None] * n
-    slid_ok = signed_distances(slid, geo, normals=False)[0].min(-1) >= p.body_margin
+    slid_ok = obstacle_distances(slid, geo).min(-1) >= p.body_margin
     return np.where(blocked[..., None], np.where(slid_ok[..., None], slid, pos_e), cand)

@@ -64,12 +64,22 @@ _WALL_NX = np.array([1.0, -1.0, 0.0, 0.0])
 _WALL_NY = np.array([0.0, 0.0, 1.0, -1.0])
 
 
-def signed_distances(points: np.ndarray, geo: Geometry, normals: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+def signed_distances(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Signed distance and outward unit normal from every obstacle to every point.
 
-    points: (..., 2). Returns dist (..., K) and normal (..., K, 2) (None when
-    ``normals`` is false), K = geo.num_obstacles.
+    points: (..., 2). Returns dist (..., K) and normal (..., K, 2), K = geo.num_obstacles.
     """
+    dist, normal = _sdf(points, geo, normals=True)
+    assert normal is not None
+    return dist, normal
+
+
+def obstacle_distances(points: np.ndarray, geo: Geometry) -> np.ndarray:
+    """Signed distances (..., K) from every obstacle to every point, without normals."""
+    return _sdf(points, geo, normals=False)[0]
+
+
+def _sdf(points: np.ndarray, geo: Geometry, normals: bool) -> tuple[np.ndarray, np.ndarray | None]:
     x, y = points[..., 0], points[..., 1]
     dists = [np.stack([x, geo.width - x, y, geo.height - y], -1)]
     nx = [np.broadcast_to(_WALL_NX, dists[0].shape)]

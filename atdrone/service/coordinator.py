@@ -226,11 +226,11 @@ class Coordinator:
     def _hola_generation(self, uniform: bool) -> dict[str, Any]:
         if not self.population:  # bootstrap: a self-play learner
             learner = self._learner()
-            history = self._train(learner, [], None, self.num_p)
-            member = self._register(learner, self.cfg.algorithm, [], history)
+            boot = self._train(learner, [], None, self.num_p)
+            member = self._register(learner, self.cfg.algorithm, [], boot)
             ray.kill(learner)
             self.population, self.new_learners = [member], [member]
-            return {"learners": [member], "history": {member: history}, "matches": [], "eta": {}, "rho": {}}
+            return {"learners": [member], "history": {member: boot}, "matches": [], "eta": {}, "rho": {}}
         played = ray.get(self.registry.matches.remote(run=self.run))
         known = [tuple(t) for t in played["team"]] if len(played) else []
         missing = hola.missing_hyperedges(self.population, self.new_learners, self.num_ctrl, self.num_partners, known)
@@ -245,8 +245,8 @@ class Coordinator:
         candidates = list(self.population)
         rho = hola.uniform_distribution(candidates) if uniform else hola.partner_distribution(self.eta, candidates)
         profiles = hola.sample_profiles(rho, 8, self.num_partners, self.rng)  # logged: what the learners face
-        learners, history = [], {}
-        parents = [max(self.population, key=lambda m: (self.eta.get(m, 0.0), self.population.index(m)))]
+        learners: list[str] = []
+        history: dict[str, list[dict[str, float]]] = {}
         for _ in range(self.cfg.learners_per_generation):
             learner = self._learner(init_from=self.new_learners[-1])
             specs = [self.spec(m) for m in candidates]
@@ -271,14 +271,14 @@ class Coordinator:
             "weights": {"|".join(k): v for k, v in weights.items()},
             "preference": {n: list(e) for n, e in hola.preference_hypergraph(weights).items()},
             "removed": removed,
-            "best_parent": parents[0],
         }
 
     def _pbt_generation(self) -> dict[str, Any]:
         """Train every member against the others, then exploit/explore by team SUC."""
         size = self.cfg.population_size
-        previous = list(self.population) or [None] * size
-        new_members, history = [], {}
+        previous: list[str | None] = list(self.population) or [None] * size
+        new_members: list[str] = []
+        history: dict[str, list[dict[str, float]]] = {}
         for i, parent in enumerate(previous):
             learner = self._learner(init_from=parent)
             if parent is None:  # first generation: spread the hyperparameters

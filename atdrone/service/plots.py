@@ -41,10 +41,10 @@ def draw_hypergraph(
     pos = {
         n: (math.cos(2 * math.pi * i / len(nodes)), math.sin(2 * math.pi * i / len(nodes))) for i, n in enumerate(nodes)
     }
-    for team in weights:
-        members = sorted(set(team.split("|")))
-        xs = [pos[m][0] for m in members] + [pos[members[0]][0]]
-        ys = [pos[m][1] for m in members] + [pos[members[0]][1]]
+    for key in weights:
+        distinct = sorted(set(key.split("|")))
+        xs = [pos[m][0] for m in distinct] + [pos[distinct[0]][0]]
+        ys = [pos[m][1] for m in distinct] + [pos[distinct[0]][1]]
         ax.plot(xs, ys, color="0.85", lw=0.8, zorder=1)
     for node, team in preference.items():
         for other in set(team) - {node}:
