@@ -5,7 +5,10 @@ Each subcommand is a pair: ``add_<name>(subparsers)`` declares its arguments and
 new subcommand is one more pair and one more table row.
 
     atdrone render --task 4p2e5o --out run.gif [--seed 0] [--frame-every 2] [--png frame.png]
+                   [--policy greedy|vicsek|PATH] [--zoo zoo1]
     atdrone demo [--out demo_out]
+    atdrone evaluate --policy greedy|vicsek|PATH --task 4p2e1o|all --zoo zoo1|all [--episodes 500]
+                     [--seeds 0 1 2] [--out eval_out]
 """
 
 from __future__ import annotations
@@ -47,10 +50,19 @@ def _add_episode_args(p: argparse.ArgumentParser) -> None:
 
 
 def _format_summary(summary: dict[str, Any]) -> str:
-    return (
+    text = (
         f"{summary['task']} seed {summary['seed']}: {summary['outcome']} after {summary['steps']} steps, "
         f"return {summary['return']:+.2f}, captured {summary['captured']}/{summary['num_e']}"
     )
+    if "team" in summary:
+        team = summary["team"]
+        partners = ", ".join(f"{n} in {s}" for n, s in zip(team["partners"], team["partner_slots"], strict=True))
+        text += f"\nteam: learners in slots {', '.join(map(str, team['learner_slots']))}; partners {partners}"
+    return text
+
+
+def _error(args: argparse.Namespace, message: object) -> None:
+    print(f"atdrone {args.command}: error: {message}", file=sys.stderr)
 
 
 # ---------------------------------------------------------------- render
@@ -58,9 +70,13 @@ def add_render(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "render",
         help="render one episode to a GIF",
-        description="Run one episode with the built-in chase-the-nearest-evader policy and save it as a GIF.",
+        description="Run one episode and save it as a GIF. Every pursuer follows --policy (default: the built-in "
+        "chase-the-nearest-evader policy); with --zoo the policy drives the task's learner slots and partners drawn "
+        "from the zoo (drawn green) the others.",
     )
     p.add_argument("--task", default="4p2e5o", help=f"task name ({', '.join(TASK_NAMES)}) or JSON path")
+    p.add_argument("--policy", default=None, help="greedy, vicsek or a checkpoint PATH (default: built-in chase)")
+    p.add_argument("--zoo", default=None, help="fill the partner slots from this zoo (zoo1, zoo2, zoo3 or a JSON path)")
     p.add_argument("--out", type=Path, default=None, help="GIF path (default: <task>.gif)")
     p.add_argument("--png", type=Path, default=None, help="also save the first frame as this PNG")
     _add_episode_args(p)
@@ -70,9 +86,19 @@ def add_render(subparsers: Any) -> argparse.ArgumentParser:
 def run_render(args: argparse.Namespace) -> int:
     from atdrone.config import load_task
     from atdrone.envs.render import record_episode, save_gif, save_png
+    from atdrone.policies.zoo import PolicyError, load_zoo, policy_from_spec
 
     cfg = load_task(args.task)
-    frames, summary = record_episode(cfg, args.seed, max_steps=args.max_steps, frame_every=args.frame_every)
+    zoo = load_zoo(args.zoo) if args.zoo is not None else None
+    try:
+        policy = policy_from_spec(args.policy) if args.policy is not None else None
+        partners = zoo.policies() if zoo is not None else None
+    except PolicyError as exc:
+        _error(args, exc)
+        return EXIT_USAGE
+    frames, summary = record_episode(
+        cfg, args.seed, policy=policy, partners=partners, max_steps=args.max_steps, frame_every=args.frame_every
+    )
     out = save_gif(frames, args.out if args.out is not None else Path(f"{cfg.name}.gif"), fps=args.fps)
     print(f"wrote {out} ({len(frames)} frames)")
     if args.png is not None:
@@ -231,11 +257,69 @@ def run_registry(args: argparse.Namespace) -> int:
     return 0
 
 
+# -------------------------------------------------------------- evaluate
+def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "evaluate",
+        help="SUC / COL / AST / REW of a policy teamed with unseen zoo partners",
+        description="Play --episodes episodes per seed of the policy in the task's learner slots with partners drawn "
+        "from the zoo; print SUC / COL / AST / REW (mean ± std over seeds) as a table (rows tasks, columns zoos) and "
+        "write <out>/<policy>_<task>_<zoo>.json (summary and per-seed metrics) and .csv (every episode).",
+    )
+    p.add_argument("--policy", required=True, help="the learner: greedy, vicsek or a checkpoint PATH")
+    p.add_argument("--task", default="4p2e1o", help=f"task name ({', '.join(TASK_NAMES)}), JSON path, or all")
+    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
+    p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default: 0)")
+    p.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from atdrone.config import load_task
+    from atdrone.evaluation import evaluate_grid
+    from atdrone.policies.zoo import RULES, ZOO_NAMES, PolicyError, load_zoo, policy_from_spec
+    from atdrone.reports import format_table, write_report
+
+    tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]
+    zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
+    try:
+        learner = policy_from_spec(args.policy)
+    except PolicyError as exc:
+        _error(args, exc)
+        return EXIT_USAGE
+    for zoo in zoos:
+        if zoo.missing:
+            print(
+                f"atdrone evaluate: warning: zoo {zoo.name} is missing {', '.join(zoo.missing)}; its cells are skipped",
+                file=sys.stderr,
+            )
+    playable = [z for z in zoos if not z.missing]
+    if not playable:
+        _error(args, "no zoo has all its members; nothing to evaluate")
+        return 1
+    total = len(tasks) * len(playable) * args.episodes * len(args.seeds)
+    with tqdm(total=total, unit="ep", desc="evaluate", file=sys.stderr, disable=args.no_progress) as bar:
+        cells = evaluate_grid(learner, tasks, zoos, args.episodes, args.seeds, on_progress=bar.update)
+    print(format_table(cells, args.policy, args.episodes, args.seeds))
+    label = args.policy if args.policy in RULES else Path(args.policy).stem
+    task_part = "all" if args.task == "all" else tasks[0].name
+    zoo_part = "all" if args.zoo == "all" else zoos[0].name
+    stem = f"{label}_{task_part}_{zoo_part}"
+    json_path, csv_path = write_report(args.out, stem, cells, args.policy, args.episodes, args.seeds)
+    print(f"\nwrote {json_path} and {csv_path}")
+    return 0
+
+
 COMMANDS: dict[str, Command] = {
     "render": Command(add_render, run_render),
     "demo": Command(add_demo, run_demo),
     "train": Command(add_train, run_train),
     "registry": Command(add_registry, run_registry),
+    "evaluate": Command(add_evaluate, run_evaluate),
 }
 
 

@@ -158,3 +158,38 @@ def evaluate(
     return Evaluation(
         task=cfg.name, zoo=zoo.name, learner=getattr(learner, "name", "learner"), per_seed=per_seed, records=records
     )
+
+
+@dataclass(frozen=True)
+class GridCell:
+    """One task x zoo cell of an evaluation grid: its evaluation, or the zoo members that are missing."""
+
+    task: str
+    zoo: str
+    evaluation: Evaluation | None
+    missing: tuple[str, ...] = ()
+
+
+def evaluate_grid(
+    learner: Policy,
+    tasks: Sequence[TaskConfig | str],
+    zoos: Sequence[Zoo | str],
+    episodes: int = 500,
+    seeds: Sequence[int] = (0,),
+    on_progress: Callable[[int], None] | None = None,
+) -> list[GridCell]:
+    """Evaluate ``learner`` on every task x zoo (row-major: tasks outer, zoos inner).
+
+    A zoo with missing members is not played: its cells list the missing members.
+    """
+    cfgs = [load_task(t) for t in tasks]
+    loaded = [load_zoo(z) if isinstance(z, str) else z for z in zoos]
+    cells = []
+    for cfg in cfgs:
+        for zoo in loaded:
+            if zoo.missing:
+                cells.append(GridCell(cfg.name, zoo.name, None, tuple(zoo.missing)))
+            else:
+                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress)
+                cells.append(GridCell(cfg.name, zoo.name, result))
+    return cells

@@ -4,7 +4,9 @@ For every episode of every environment a :class:`Match` draws which pursuer slot
 learners fill (shuffled) and which partner member fills each remaining slot (drawn
 from the zoo, uniformly unless a sampler is given), steps the partners itself, and
 exposes the learners' slots only: observations (B, num_ctrl, obs_dim) and actions
-(B, num_ctrl). ``info["team"]`` records the team of each episode that just ended.
+(B, num_ctrl). ``info["team"]`` records the team of the episodes played in the step:
+``learner_slots`` (B, num_ctrl), ``partner_slots`` and ``partner_members``
+(B, num_unctrl) and ``partners``, the members' names (B, num_unctrl).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ class Match:
         self.core = core
         self.partners: list[Policy] = partners.policies() if isinstance(partners, Zoo) else list(partners)
         self.partner_names = [p.name for p in self.partners]
+        self._names = np.array(self.partner_names, dtype=object)
         self.num_ctrl = core.cfg.players.num_ctrl if num_ctrl is None else num_ctrl
         self.num_unctrl = core.num_p - self.num_ctrl
         if not 0 < self.num_ctrl <= core.num_p:
@@ -78,10 +81,27 @@ class Match:
             self.rng = np.random.default_rng([seed, 1])
         self._obs = self.core.reset(seed=seed)
         self._assign(np.arange(self.core.num_envs))
+        for policy in self.partners:
+            policy.reset(np.ones(self.core.num_envs, dtype=bool))
         return self.learner_view(self._obs)
 
     def learner_view(self, obs: np.ndarray) -> np.ndarray:
         return obs[self._rows, self.learner_slots]
+
+    def observe(self) -> np.ndarray:
+        """The learners' current observations (B, num_ctrl, obs_dim)."""
+        if self._obs is None:
+            raise RuntimeError("call reset() first")
+        return self.learner_view(self._obs)
+
+    def team(self) -> dict[str, np.ndarray]:
+        """The teams of the episodes now running (the layout of ``info["team"]``)."""
+        return {
+            "learner_slots": self.learner_slots.copy(),
+            "partner_slots": self.partner_slots.copy(),
+            "partner_members": self.members.copy(),
+            "partners": self._names[self.members],
+        }
 
     def learner_batch(self) -> DroneBatch:
         """The learners' drones as a DroneBatch, env-major (for policies that drive learners)."""
@@ -104,8 +124,8 @@ class Match:
         """Step with the learners' actions (B, num_ctrl); partners act themselves.
 
         Returns learner observations, learner rewards (B, num_ctrl), dones (B,) and the
-        core's info, with ``final_obs`` in the learners' view and ``team``: the slots
-        and partner members of the episodes that were played this step.
+        core's info, with ``final_obs`` in the learners' view and ``team``: the teams
+        of the episodes played this step (see :meth:`team`).
         """
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
@@ -118,7 +138,7 @@ class Match:
         self.partner_actions(actions)
         obs, rewards, dones, info = self.core.step(actions)
         info["final_obs"] = self.learner_view(info["final_obs"])
-        info["team"] = {"learner_slots": self.learner_slots.copy(), "partner_members": self.members.copy()}
+        info["team"] = self.team()
         if dones.any():
             for policy in self.partners:
                 policy.reset(dones)

@@ -4,11 +4,13 @@
   (observation (num_p, obs_dim), action (num_p,)); ``gymnasium.make_vec`` with
   ``vectorization_mode="vector_entry_point"`` returns :class:`PursuitVectorEnv`,
   the batched core itself as a Gymnasium VectorEnv.
+- ``atdrone/AdaptiveTeaming-v0``: the learner steers the task's num_ctrl pursuers and
+  unseen zoo partners the rest (:class:`AdaptiveTeamingEnv`).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -18,6 +20,9 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from atdrone.config import TaskConfig
 from atdrone.envs.core import CAPTURED, COLLISION, DONE_REASONS, OBS_BOUND, TIMEOUT, BatchedPursuit
 from atdrone.envs.single import SingleEnv
+
+if TYPE_CHECKING:
+    from atdrone.policies.zoo import Zoo
 
 
 def _spaces(core: BatchedPursuit) -> tuple[spaces.Box, spaces.Box]:
@@ -39,6 +44,76 @@ class PursuitEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
         return self.env.reset(seed=seed), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        out = self.env.step(action)
+        return out.obs, out.reward, out.terminated, out.truncated, out.info
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            return None
+        from atdrone.envs.render import render_frame
+
+        return render_frame(self.env.core, 0)
+
+
+class AdaptiveTeamingEnv(gym.Env):
+    """Adaptive teaming: the agent steers the learner drones, unseen zoo partners the rest.
+
+    Description
+        One pursuit environment of ``task`` (SPEC sections 1-6). Every episode a
+        :class:`~atdrone.teams.Match` shuffles which pursuer slots the agent's num_ctrl
+        learner drones fill and draws a zoo member for each of the other num_unctrl
+        slots; the partners act on their own, the evaders are the environment.
+
+    Action Space
+        Box(-1, 1, (num_ctrl,), float32): one turn per learner drone, heading +=
+        a * pi/4 (45 degrees at most), in the order of ``team["learner_slots"]``.
+
+    Observation Space
+        Box(-1.5, 1.5, (num_ctrl, obs_dim), float32): the learner drones' rows of the
+        core's observation (layout in :mod:`atdrone.envs.core`, obs_dim = 4 (num_e + num_p)).
+
+    Rewards
+        The team's shared reward (:mod:`atdrone.envs.core`).
+
+    Starting State
+        The core's spawn; learner slots and partner members drawn anew per episode.
+
+    Episode End
+        Terminated when every evader is captured or on a collision; truncated at the
+        task horizon. The step info that ends an episode carries ``team``:
+        ``learner_slots``, ``partner_slots``, ``partner_members`` and ``partners``
+        (member names) of that episode, besides the episode statistics. ``reset``
+        returns the team of the episode it starts as ``info["team"]``.
+
+    Arguments
+        task: task name, path or TaskConfig (default "4p2e1o"); zoo: zoo name, path
+        or Zoo (default "zoo1"); a zoo whose checkpoint members are missing raises
+        :class:`~atdrone.policies.zoo.ZooError` here. render_mode: None or "rgb_array".
+
+    Version History
+        v0: first version (observation layout version 1).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, task: TaskConfig | str = "4p2e1o", zoo: Zoo | str = "zoo1", render_mode: str | None = None):
+        from atdrone.policies.zoo import load_zoo  # atdrone.policies builds on atdrone.envs
+        from atdrone.teams import Match
+
+        self.zoo = zoo if not isinstance(zoo, str) else load_zoo(zoo)
+        self.match = Match(BatchedPursuit(task, num_envs=1), self.zoo)
+        self.env = SingleEnv(self.match)
+        self.render_mode = render_mode
+        core = self.env.core
+        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (self.match.num_ctrl, core.obs_dim), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (self.match.num_ctrl,), np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        obs = self.env.reset(seed=seed)
+        return obs, {"team": {k: v[0].tolist() for k, v in self.match.team().items()}}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         out = self.env.step(action)
@@ -82,6 +157,13 @@ def register_envs() -> None:
             id="atdrone/Pursuit-v0",
             entry_point="atdrone.envs.gym:PursuitEnv",
             vector_entry_point="atdrone.envs.gym:PursuitVectorEnv",
+            max_episode_steps=None,
+            disable_env_checker=False,
+        )
+    if "atdrone/AdaptiveTeaming-v0" not in gym.registry:
+        gym.register(
+            id="atdrone/AdaptiveTeaming-v0",
+            entry_point="atdrone.envs.gym:AdaptiveTeamingEnv",
             max_episode_steps=None,
             disable_env_checker=False,
         )

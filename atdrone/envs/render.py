@@ -3,27 +3,35 @@
 Matplotlib is imported only inside the functions that draw (on its Agg canvas, no
 pyplot), so importing :mod:`atdrone.envs` stays light. A frame shows one environment
 of a :class:`BatchedPursuit`: the arena and its walls, box and disc obstacles,
-pursuers (blue) and evaders (red) with heading arrows, each pursuer's capture radius
-(solid ring) and perception radius (faint ring), captured evaders greyed and crossed,
-the step counter and, optionally, the trails the drones left.
+pursuers (blue; zoo partners green when a team plays) and evaders (red) with heading
+arrows, each pursuer's capture radius (solid ring) and perception radius (faint ring),
+captured evaders greyed and crossed, the step counter and, optionally, the trails the
+drones left.
 """
 
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from atdrone.config import TaskConfig
 from atdrone.envs.core import DIST_SCALE, DONE_REASONS, ENTITY_FEATURES, RUNNING, BatchedPursuit, PursuitState
+from atdrone.envs.single import Stepper
+from atdrone.fileio import atomic_write
 
-Policy = Callable[[np.ndarray, BatchedPursuit], np.ndarray]
+if TYPE_CHECKING:  # atdrone.policies and atdrone.teams build on atdrone.envs
+    from atdrone.policies.base import Policy as DronePolicy
+    from atdrone.policies.zoo import Zoo
+    from atdrone.teams import Match
+
+Policy = Callable[[np.ndarray, BatchedPursuit], np.ndarray]  # obs (B, n, obs_dim), core -> actions (B, n)
 
 PURSUER_COLOR = "#1f5fbf"
+PARTNER_COLOR = "#2a9d3a"
 EVADER_COLOR = "#d62728"
 CAPTURED_COLOR = "#8c8c8c"
 OBSTACLE_COLOR = "#5a5a5a"
@@ -42,7 +50,7 @@ class FrameRenderer:
     :meth:`draw` replaces only the drones, rings, trails and labels.
     """
 
-    def __init__(self, core: BatchedPursuit, env_index: int = 0) -> None:
+    def __init__(self, core: BatchedPursuit, env_index: int = 0, partner_slots: Sequence[int] = ()) -> None:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
         from matplotlib.patches import Circle, Rectangle
@@ -51,6 +59,8 @@ class FrameRenderer:
             raise IndexError(f"env_index {env_index} out of range for {core.num_envs} environments")
         self.core = core
         self.env_index = env_index
+        partners = {int(i) for i in partner_slots}
+        self.pursuer_colors = [PARTNER_COLOR if i in partners else PURSUER_COLOR for i in range(core.num_p)]
         geo = core.geometry
         pad = 0.15
         w, h = geo.width + 2 * pad, geo.height + 2 * pad
@@ -107,17 +117,17 @@ class FrameRenderer:
 
         if trails is not None and len(trails) > 1:
             for n in range(pos.shape[0]):
-                color = PURSUER_COLOR if n < P else (CAPTURED_COLOR if captured[n - P] else EVADER_COLOR)
+                color = self.pursuer_colors[n] if n < P else (CAPTURED_COLOR if captured[n - P] else EVADER_COLOR)
                 (line,) = ax.plot(trails[:, n, 0], trails[:, n, 1], color=color, alpha=0.35, linewidth=1, zorder=1)
                 dyn.append(line)
 
         for i in range(P):
-            xy = pos[i]
+            xy, color = pos[i], self.pursuer_colors[i]
             perception = Circle(
                 xy,
                 cfg.players.reception_range,
-                facecolor=to_rgba(PURSUER_COLOR, 0.03),
-                edgecolor=to_rgba(PURSUER_COLOR, 0.35),
+                facecolor=to_rgba(color, 0.03),
+                edgecolor=to_rgba(color, 0.35),
                 linewidth=0.8,
                 linestyle=(0, (2, 3)),
                 zorder=1,
@@ -130,14 +140,14 @@ class FrameRenderer:
                         xy,
                         cfg.task.capture_range,
                         facecolor="none",
-                        edgecolor=PURSUER_COLOR,
+                        edgecolor=color,
                         linewidth=1.0,
                         alpha=0.8,
                         zorder=3,
                     )
                 )
             )
-            dyn.append(ax.add_patch(Circle(xy, DRONE_RADIUS, facecolor=PURSUER_COLOR, edgecolor="white", zorder=6)))
+            dyn.append(ax.add_patch(Circle(xy, DRONE_RADIUS, facecolor=color, edgecolor="white", zorder=6)))
             label = ax.text(xy[0], xy[1], str(i), color="white", fontsize=7, weight="bold", ha="center", va="center")
             dyn.append(label)
             label.set_zorder(7)
@@ -154,7 +164,7 @@ class FrameRenderer:
 
         live = np.r_[np.ones(P, dtype=bool), ~captured]
         u, v = np.cos(heading) * ARROW_LENGTH, np.sin(heading) * ARROW_LENGTH
-        colors = [PURSUER_COLOR] * P + [EVADER_COLOR] * core.num_e
+        colors = self.pursuer_colors + [EVADER_COLOR] * core.num_e
         dyn.append(
             ax.quiver(
                 pos[live, 0],
@@ -197,34 +207,12 @@ def render_frame(
         renderer.close()
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _atomic_write(path: str | os.PathLike[str], write: Callable[[Any], None]) -> Path:
-    """Write through ``write(file)`` to a temp file beside ``path``, then move it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual mode
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def save_png(frame: np.ndarray, path: str | os.PathLike[str]) -> Path:
     """Write one RGB frame as a PNG, atomically."""
     from PIL import Image
 
     image = Image.fromarray(np.asarray(frame, dtype=np.uint8))
-    return _atomic_write(path, lambda f: image.save(f, format="PNG"))
+    return atomic_write(path, lambda f: image.save(f, format="PNG"))
 
 
 def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: float = 10) -> Path:
@@ -239,7 +227,7 @@ def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: fl
     palette = Image.fromarray(np.concatenate(samples, 0)).quantize(colors=96, dither=Image.Dither.NONE)
     first, *rest = (im.quantize(palette=palette, dither=Image.Dither.NONE) for im in images)
     duration = max(20, round(1000 / fps))
-    return _atomic_write(
+    return atomic_write(
         path,
         lambda f: first.save(
             f, format="GIF", save_all=True, append_images=rest, duration=duration, loop=0, optimize=True
@@ -258,11 +246,12 @@ def chase_nearest(obs: np.ndarray, core: BatchedPursuit, clearance: float = 0.35
     block, straight ahead when none is visible. A safety filter then picks, among 17
     turns in [-1, 1], the one that best turns the nose away from every obstacle, wall
     or teammate nearer than ``clearance`` metres (ties: closest to the wanted turn),
-    so demo episodes do not end at the first wall. obs (B, P, obs_dim) -> actions (B, P).
+    so demo episodes do not end at the first wall. obs (B, P, obs_dim) -> actions (B, P),
+    for every pursuer or any P of them.
     """
-    B, P, _ = obs.shape
+    B, P, _ = obs.shape  # P: the drones steered, every pursuer or some of them
     E = core.num_e
-    blocks = obs.reshape(B, P, E + P, ENTITY_FEATURES)
+    blocks = obs.reshape(B, P, -1, ENTITY_FEATURES)
     mask, dist = blocks[..., 0] > 0.5, blocks[..., 1] * DIST_SCALE
     bearing = np.arctan2(blocks[..., 2], blocks[..., 3])
 
@@ -284,36 +273,52 @@ def chase_nearest(obs: np.ndarray, core: BatchedPursuit, clearance: float = 0.35
 def record_episode(
     task: TaskConfig | str,
     seed: int | None = 0,
-    policy: Policy | None = None,
+    policy: Policy | DronePolicy | None = None,
     max_steps: int | None = None,
     frame_every: int = 1,
     trails: bool = True,
     title: str | None = None,
+    partners: Zoo | Sequence[DronePolicy] | None = None,
 ) -> tuple[list[np.ndarray], dict[str, Any]]:
     """Run one episode of ``BatchedPursuit(task, num_envs=1, seed)`` and draw it.
 
-    ``policy(obs (1, num_p, obs_dim), core) -> actions (1, num_p)``; default
-    :func:`chase_nearest`. The episode runs until it ends (captured, collision,
+    ``policy``: a :class:`~atdrone.policies.Policy` or a function ``(obs, core) ->
+    actions`` over the drones it steers; default :func:`chase_nearest`. Without
+    ``partners`` it steers every pursuer (obs (1, num_p, obs_dim), actions (1, num_p)).
+    With ``partners`` (a zoo or partner policies) a :class:`~atdrone.teams.Match` on
+    the core gives it the task's num_ctrl learner slots (obs (1, num_ctrl, obs_dim),
+    actions (1, num_ctrl)) and the partners drawn for the episode fill the others;
+    they are drawn green. The episode runs until it ends (captured, collision,
     timeout) or for ``max_steps`` steps (outcome "running"). Every ``frame_every``-th
     step is drawn, plus the first and the last (the pre-reset final state).
     Returns the frames and a summary: task, seed, steps, outcome, return, captured,
-    num_e.
+    num_e, and with partners the team (learner_slots, partner_slots, partners).
     """
     if frame_every < 1:
         raise ValueError(f"frame_every must be >= 1, got {frame_every}")
-    policy = chase_nearest if policy is None else policy
     core = BatchedPursuit(task, num_envs=1, seed=seed)
-    obs = core.reset(seed=seed)
-    renderer = FrameRenderer(core, 0)
+    match: Match | None = None
+    stepper: Stepper = core
+    if partners is not None:
+        from atdrone.teams import Match
+
+        stepper = match = Match(core, partners, seed=seed)
+    act = _actor(policy, core, match)
+    obs = stepper.reset(seed=seed)
     name = title if title is not None else f"{core.cfg.name}  seed {seed}"
+    team: dict[str, list[Any]] = {}
+    if match is not None:
+        team = {k: v[0].tolist() for k, v in match.team().items() if k != "partner_members"}
+        if title is None:
+            name += f"  partners: {', '.join(team['partners'])}"
+    renderer = FrameRenderer(core, 0, partner_slots=team.get("partner_slots", ()))
     history = [core.state.pos[0].copy()]
     frames = [renderer.draw(title=name)]
     reason, step, final = RUNNING, 0, core.state
     limit = core.cfg.task.task_horizon if max_steps is None else max_steps
     try:
         while step < limit:
-            actions = np.asarray(policy(obs, core), dtype=np.float64).reshape(1, core.num_p)
-            obs, _, done, info = core.step(actions)
+            obs, _, done, info = stepper.step(np.asarray(act(obs), dtype=np.float64).reshape(1, -1))
             step += 1
             if done[0]:
                 assert core.final_state is not None
@@ -328,7 +333,7 @@ def record_episode(
                 break
     finally:
         renderer.close()
-    summary = {
+    summary: dict[str, Any] = {
         "task": core.cfg.name,
         "seed": seed,
         "steps": int(final.t[0]),
@@ -337,4 +342,26 @@ def record_episode(
         "captured": int(final.captured[0].sum()),
         "num_e": core.num_e,
     }
+    if team:
+        summary["team"] = team
     return frames, summary
+
+
+def _actor(
+    policy: Policy | DronePolicy | None, core: BatchedPursuit, match: Match | None
+) -> Callable[[np.ndarray], np.ndarray]:
+    """``obs -> actions`` of the drones ``policy`` steers: every pursuer, or the match's learners."""
+    from atdrone.policies.base import DroneBatch
+    from atdrone.policies.base import Policy as PolicyProtocol
+
+    if policy is None:
+        return lambda obs: chase_nearest(obs, core)
+    if isinstance(policy, PolicyProtocol):
+        drones = policy
+        drones.reset(np.ones(1, dtype=bool))
+        if match is not None:
+            learners = match
+            return lambda obs: drones.act(learners.learner_batch())
+        return lambda obs: drones.act(DroneBatch.all_slots(core, obs))
+    steer = policy
+    return lambda obs: steer(obs, core)

@@ -23,7 +23,11 @@ REPO_ROOT = CONFIG_DIR.parent
 RULES: dict[str, type] = {"greedy": GreedyPolicy, "vicsek": VicsekPolicy}
 
 
-class ZooError(RuntimeError):
+class PolicyError(RuntimeError):
+    """A policy cannot be had: an unknown name, a missing or unreadable checkpoint."""
+
+
+class ZooError(PolicyError):
     """A zoo cannot provide a member's policy (e.g. its checkpoint is missing)."""
 
 
@@ -101,14 +105,34 @@ class Zoo:
 
 
 def _build(spec: MemberSpec) -> Policy:
-    if spec.kind in RULES:
-        policy = RULES[spec.kind](**spec.params)
-    else:
-        from atdrone.checkpoint import load_policy
-
-        policy = load_policy(checkpoint_path(spec))
+    policy = RULES[spec.kind](**spec.params) if spec.kind in RULES else load_checkpoint(checkpoint_path(spec))
     policy.name = spec.name
     return policy
+
+
+def load_checkpoint(path: str | Path) -> Policy:
+    """The policy saved in a checkpoint file; PolicyError when it cannot be loaded."""
+    path = Path(path)
+    if not path.is_file():
+        raise PolicyError(f"no checkpoint file {str(path)!r}")
+    try:
+        from atdrone.checkpoint import load_policy
+    except ImportError as exc:
+        raise PolicyError(f"cannot load checkpoint {str(path)!r}: checkpoint support is not available ({exc})") from exc
+    try:
+        return load_policy(path)
+    except Exception as exc:  # a damaged or foreign file: torch, pickle, JSON and key errors alike
+        raise PolicyError(f"cannot load checkpoint {str(path)!r}: {type(exc).__name__}: {exc}") from exc
+
+
+def policy_from_spec(spec: str | Path) -> Policy:
+    """A policy named on a command line: a rule kind (greedy, vicsek) or a checkpoint path."""
+    text = str(spec)
+    if text in RULES:
+        return RULES[text]()
+    if not Path(text).is_file():
+        raise PolicyError(f"no policy {text!r}: give a rule ({', '.join(RULES)}) or a checkpoint file")
+    return load_checkpoint(text)
 
 
 def load_zoo(name_or_path: str | Path | dict[str, Any]) -> Zoo:
