@@ -1,0 +1,105 @@
+"""Ray job entrypoint: run (or resume) a population training experiment on the cluster.
+
+    ray job submit --address http://HEAD:8265 --working-dir . -- \
+        python jobs/train.py configs/experiments/hola_quick.json [--resume] [--generations N] [--name X] \
+        [--out-dir /shared/runs] [--tracking-uri URI] [--updates-per-generation N] ...
+
+Inside a Ray job RAY_ADDRESS is set, so ``atdrone.service.driver.run_experiment`` joins
+the cluster instead of starting a local Ray; run outside a job it starts a local Ray
+(or joins --address). The run lives in ``<out_dir>/<name>/`` (registry.db, member
+checkpoints, service_state.json): on a cluster that must be storage every node sees,
+so pass --out-dir (or set ATDRONE_OUT_DIR) to a shared path; MLflow goes to
+--tracking-uri, else MLFLOW_TRACKING_URI, else ./mlflow.db. The overrides are named
+like the config keys (--updates-per-generation and --updates_per_generation alike).
+Bad input exits with status 2 and a one-line error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+if str(REPO_ROOT) not in sys.path:  # `--working-dir .` on nodes that only have the dependencies
+    sys.path.insert(0, str(REPO_ROOT))
+
+PROG = "jobs/train.py"
+EXIT_USAGE = 2
+# integer config keys that can be overridden from the command line
+INT_OVERRIDES = (
+    "seed",
+    "generations",
+    "updates_per_generation",
+    "num_workers",
+    "envs_per_worker",
+    "rollout_steps",
+    "population_size",
+    "learners_per_generation",
+    "eval_episodes",
+    "final_episodes",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("config", help="experiment config JSON (configs/experiments/*.json)")
+    p.add_argument("--resume", action="store_true", help="continue the run from its last completed generation")
+    p.add_argument("--name", default=None, help="override the run (and MLflow experiment) name")
+    p.add_argument(
+        "--out-dir",
+        "--out_dir",
+        dest="out_dir",
+        default=os.environ.get("ATDRONE_OUT_DIR"),
+        help="where runs are written (default: $ATDRONE_OUT_DIR, else the config's out_dir)",
+    )
+    p.add_argument("--tracking-uri", default=None, help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI)")
+    p.add_argument("--address", default=None, help="Ray address (default: $RAY_ADDRESS, set inside a Ray job)")
+    p.add_argument("--final-zoo", "--final_zoo", dest="final_zoo", default=None, help="override the final zoo")
+    p.add_argument("--no-gif", action="store_true", help="skip the GIF of the best member")
+    for key in INT_OVERRIDES:
+        flag = key.replace("_", "-")
+        names = [f"--{flag}"] + ([f"--{key}"] if flag != key else [])
+        p.add_argument(*names, dest=key, type=int, default=None, metavar="N", help=f"override {key}")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from atdrone.config import ConfigError
+    from atdrone.service.driver import run_experiment
+    from atdrone.service.experiment import load_experiment
+
+    overrides = {key: getattr(args, key) for key in INT_OVERRIDES}
+    overrides.update(name=args.name, out_dir=args.out_dir, final_zoo=args.final_zoo)
+    if args.no_gif:
+        overrides["gif"] = False
+    try:
+        cfg = load_experiment(args.config, **overrides)
+    except ConfigError as exc:
+        print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
+        return EXIT_USAGE
+    where = os.environ.get("RAY_ADDRESS") or args.address or "a local Ray"
+    print(f"{PROG}: {cfg.name} ({cfg.algorithm} on {cfg.task}, {cfg.generations} generations) on {where}", flush=True)
+    try:
+        summary = run_experiment(cfg, address=args.address, resume=args.resume, tracking_uri=args.tracking_uri)
+    except FileExistsError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    import pandas as pd
+
+    with pd.option_context("display.float_format", "{:.2f}".format, "display.width", 120):
+        print(f"\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):")
+        print(summary["population"].to_string(index=False))
+    from atdrone.tracking import tracking_uri
+
+    print(f"best member: {summary['best']}; run directory: {summary['run_dir']}")
+    print(f"registry: atdrone registry --db {summary['run_dir']}/registry.db list")
+    print(f"MLflow: experiment {cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri(args.tracking_uri)}")
+    print(f"{PROG}: done")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,247 @@
+"""The Ray job entrypoints (jobs/) and the cluster configs (cluster/).
+
+The last test starts a real Ray head (``ray start --head --block``, ports picked free,
+its own temp dir, token auth disabled), submits jobs/evaluate.py and a one-generation
+jobs/train.py with JobSubmissionClient, as ``ray job submit --working-dir .`` does, and
+stops the head by signalling the process it started (never ``ray stop``, which would end
+every Ray on the machine).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shlex
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack
+from pathlib import Path
+from types import ModuleType
+
+import pandas as pd
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+PY = sys.executable
+EVALUATE = REPO / "jobs" / "evaluate.py"
+TRAIN = REPO / "jobs" / "train.py"
+EXCLUDES = [".venv", "runs", "*.db", ".git", "mlruns", "demo_out", "eval_out"]
+# a one-generation HOLA-Drone V2 run small enough for a 2-core machine
+TINY_TRAIN = (
+    "--generations 1 --updates-per-generation 1 --num-workers 1 --envs-per-worker 4 --rollout-steps 16 "
+    "--eval-episodes 2 --final-episodes 2 --final-zoo zoo1 --no-gif"
+)
+
+
+def _run(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([PY, *map(str, args)], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+# ------------------------------------------------------------- the scripts
+def test_evaluate_script_writes_its_outputs(tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    proc = _run(EVALUATE, "--policy", "greedy", "--task", "4p2e1o", "--zoo", "zoo1", "--episodes", "20", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "evaluate greedy on 4p2e1o with zoo1: 20 episodes" in proc.stdout
+    report = json.loads((out / "greedy_4p2e1o_zoo1.json").read_text())
+    assert report["summary"]["episodes"] == 20
+    assert report["summary"]["task"] == "4p2e1o" and report["summary"]["zoo"] == "zoo1"
+    assert 0 <= report["summary"]["SUC"] <= 100
+    assert [row["seed"] for row in report["per_seed"]] == [0]
+    episodes = pd.read_csv(out / "greedy_4p2e1o_zoo1.csv")
+    assert len(episodes) == 20 and {"success", "collided", "length", "return"} <= set(episodes.columns)
+
+
+def test_bad_task_exits_non_zero_with_one_line(tmp_path: Path) -> None:
+    proc = _run(EVALUATE, "--policy", "greedy", "--task", "4p9e9o", "--episodes", "5", "--out", tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("jobs/evaluate.py: error:") and "4p9e9o" in lines[0]
+    assert not any(tmp_path.iterdir())
+
+
+def _load_script(path: Path) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"atdrone_job_{path.stem}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize(
+    ("script", "args", "needle"),
+    [
+        (EVALUATE, ["--policy", "no_such_policy.pt", "--episodes", "5"], "no_such_policy.pt"),
+        (EVALUATE, ["--policy", "greedy", "--zoo", "zoo9", "--episodes", "5"], "zoo9"),
+        (TRAIN, ["configs/experiments/hola_quick.json", "--final-zoo", "zoo9"], "final_zoo"),
+        (TRAIN, ["configs/experiments/hola_quick.json", "--rollout_steps", "0"], "rollout_steps"),
+        (TRAIN, ["configs/experiments/no_such.json"], "no_such"),
+    ],
+)
+def test_bad_input_is_refused_in_one_line(
+    script: Path, args: list[str], needle: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    main = _load_script(script).main
+    assert main([*args, "--out" if script == EVALUATE else "--out-dir", str(tmp_path)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"jobs/{script.name}: error:") and needle in lines[0], lines
+    assert not any(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------- cluster configs
+@pytest.mark.parametrize("name", ["onprem.yaml", "aws.yaml"])
+def test_launcher_configs_pass_rays_schema(name: str) -> None:
+    from ray.autoscaler._private.util import prepare_config, validate_config
+
+    config = yaml.safe_load((REPO / "cluster" / name).read_text())
+    assert config["provider"]["type"] == ("local" if name == "onprem.yaml" else "aws")
+    validate_config(prepare_config(config))
+    setup = " ".join(config["setup_commands"])
+    assert setup.index("torch==2.13.0") < setup.index("-e ~/atdrone")
+    assert config["file_mounts"] == {"~/atdrone": "."}
+    assert any("ray start --head" in c for c in config["head_start_ray_commands"])
+    assert any("ray start --address" in c for c in config["worker_start_ray_commands"])
+    if name == "aws.yaml":
+        types = config["available_node_types"]
+        assert types["learner_gpu"]["resources"] == {"GPU": 1}
+        assert config["head_node_type"] in types
+
+
+def test_rayjob_manifest_runs_a_script_that_exists() -> None:
+    manifest = yaml.safe_load((REPO / "cluster" / "rayjob.yaml").read_text())
+    assert manifest["apiVersion"] == "ray.io/v1" and manifest["kind"] == "RayJob"
+    spec = manifest["spec"]
+    argv = shlex.split(spec["entrypoint"])
+    assert argv[:3] == ["python", "jobs/train.py", "configs/experiments/hola_quick.json"]
+    assert (REPO / argv[1]).is_file() and (REPO / argv[2]).is_file()
+    assert "working_dir" in yaml.safe_load(spec["runtimeEnvYAML"])
+    cluster = spec["rayClusterSpec"]
+    assert cluster["headGroupSpec"]["template"]["spec"]["containers"]
+    assert all(g["template"]["spec"]["containers"] for g in cluster["workerGroupSpecs"])
+
+
+def test_cluster_guide_names_the_commands() -> None:
+    guide = (REPO / "cluster" / "README.md").read_text()
+    commands = ("ray start --head", "ray job submit", "ray up cluster/onprem.yaml", "kubectl apply -f cluster/rayjob")
+    for text in (*commands, "MLFLOW_TRACKING_URI", "GPU"):
+        assert text in guide
+
+
+# ------------------------------------------------------------ a real head
+def _free_ports(n: int) -> list[int]:
+    with ExitStack() as stack:
+        socks = [stack.enter_context(socket.socket()) for _ in range(n)]
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+
+
+@pytest.fixture(scope="module")
+def ray_head() -> Iterator[str]:
+    """A Ray head with the dashboard (job API) on a free port; yields its address."""
+    from ray.job_submission import JobSubmissionClient
+
+    names = (
+        "port",
+        "dashboard-port",
+        "ray-client-server-port",
+        "dashboard-agent-listen-port",
+        "dashboard-agent-grpc-port",
+        "metrics-export-port",
+        "node-manager-port",
+        "object-manager-port",
+        "runtime-env-agent-port",
+    )
+    ports = dict(zip(names, _free_ports(len(names)), strict=True))
+    temp_dir = tempfile.mkdtemp(prefix="atdr-ray-", dir="/tmp")  # short: Ray's socket paths have a length limit
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    # ~/.ray/auth_token, once any local ray.init made it, switches a new head to token auth; this test
+    # head opts out so the client needs no token. The entrypoints' `python` is this venv's.
+    env.update(RAY_AUTH_MODE="disabled", PATH=f"{Path(PY).parent}{os.pathsep}{env.get('PATH', '')}")
+    cmd = [
+        str(Path(PY).parent / "ray"),
+        "start",
+        "--head",
+        "--block",
+        "--num-cpus=2",
+        "--include-dashboard=true",
+        "--dashboard-host=127.0.0.1",
+        "--disable-usage-stats",
+        f"--temp-dir={temp_dir}",
+        *(f"--{k}={v}" for k, v in ports.items()),
+    ]
+    log_path = Path(temp_dir + ".log")
+    with open(log_path, "w") as log:
+        head = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    address = f"http://127.0.0.1:{ports['dashboard-port']}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            if head.poll() is not None:
+                pytest.fail(f"ray start --head exited with {head.returncode}:\n{log_path.read_text()[-3000:]}")
+            try:
+                JobSubmissionClient(address).list_jobs()
+                break
+            except Exception as exc:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"the Ray head's job API did not answer in 60 s: {exc}")
+                time.sleep(0.5)
+        yield address
+    finally:
+        head.send_signal(signal.SIGTERM)  # `ray start --block` stops the processes it started
+        try:
+            head.wait(timeout=40)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)  # the session this test created for the head
+            head.wait(timeout=10)
+        shutil.rmtree(temp_dir, ignore_errors=True)
+        log_path.unlink(missing_ok=True)
+
+
+def _wait(client, job_id: str, timeout: float) -> str:
+    deadline = time.monotonic() + timeout
+    while not (status := client.get_job_status(job_id)).is_terminal():
+        if time.monotonic() > deadline:
+            client.stop_job(job_id)
+            return f"TIMEOUT after {timeout:.0f}s ({status})"
+        time.sleep(0.5)
+    return str(status)
+
+
+def test_jobs_submitted_to_a_ray_head_succeed(ray_head: str, tmp_path: Path) -> None:
+    from ray.job_submission import JobSubmissionClient
+
+    client = JobSubmissionClient(ray_head)
+    runtime_env = {"working_dir": str(REPO), "excludes": EXCLUDES}
+    evaluate = client.submit_job(
+        entrypoint=f"python jobs/evaluate.py --policy greedy --task 4p2e1o --zoo zoo1 --episodes 10 --out {tmp_path}",
+        runtime_env=runtime_env,
+    )
+    train = client.submit_job(
+        entrypoint=f"python jobs/train.py configs/experiments/hola_quick.json --name jobtest {TINY_TRAIN} "
+        f"--out-dir {tmp_path / 'runs'} --tracking-uri sqlite:///{tmp_path / 'mlflow.db'}",
+        runtime_env=runtime_env,
+    )
+    outcomes = {job: _wait(client, job, timeout=75) for job in (evaluate, train)}
+    logs = {job: client.get_job_logs(job) for job in (evaluate, train)}
+    for job, outcome in outcomes.items():
+        assert outcome == "SUCCEEDED", f"{job}: {outcome}\n{logs[job][-3000:]}"
+
+    assert "evaluate greedy on 4p2e1o with zoo1: 10 episodes" in logs[evaluate]
+    assert json.loads((tmp_path / "greedy_4p2e1o_zoo1.json").read_text())["summary"]["episodes"] == 10
+
+    assert "population of jobtest (hola, 4p2e1o)" in logs[train] and "jobs/train.py: done" in logs[train]
+    run_dir = tmp_path / "runs" / "jobtest"
+    population = pd.read_csv(run_dir / "population.csv")
+    assert len(population) == 1 and "zoo1_SUC" in population.columns
+    assert (run_dir / "registry.db").is_file() and (tmp_path / "mlflow.db").is_file()
+    assert json.loads((run_dir / "service_state.json").read_text())["coordinator"]["generation"] == 1
