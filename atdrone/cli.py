@@ -145,28 +145,45 @@ def run_demo(args: argparse.Namespace) -> int:
 def add_train(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "train",
-        help="train a policy (self-play IPPO, MAPPO or best response) from a config",
-        description="Train locally in one process from configs/train/*.json; tracked in MLflow "
-        "(MLFLOW_TRACKING_URI, default sqlite:///mlflow.db). The run lives in <out_dir>/<name>/.",
+        help="train: one policy locally (configs/train) or a population on Ray (configs/experiments)",
+        description="A config with 'mode' (configs/train/*.json) trains one policy in this process; a config "
+        "with 'algorithm' (configs/experiments/*.json: sp, pbt, hola, hola_no_g, br) runs the Ray population "
+        "service, on a local Ray by default or on the cluster at --address. Tracked in MLflow "
+        "(MLFLOW_TRACKING_URI, default sqlite:///mlflow.db). Runs live in <out_dir>/<name>/.",
     )
-    p.add_argument("config", help="training config JSON (e.g. configs/train/sp_quick.json)")
-    p.add_argument("--resume", action="store_true", help="continue the run from its last checkpoint")
+    p.add_argument("config", help="config JSON (configs/train/*.json or configs/experiments/*.json)")
+    p.add_argument("--resume", action="store_true", help="continue the run from its last checkpoint / generation")
     p.add_argument("--seed", type=int, default=None, help="override the config's seed")
     p.add_argument("--name", default=None, help="override the run name")
-    p.add_argument("--total-env-steps", type=_positive_int, default=None, help="override the step budget")
-    p.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time")
     p.add_argument("--out-dir", default=None, help="override where runs are written (default runs/)")
-    p.add_argument("--device", default=None, help="auto (default), cpu or cuda for the PPO update")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true", help="no progress output")
+    local = p.add_argument_group("local training (configs/train)")
+    local.add_argument("--total-env-steps", type=_positive_int, default=None, help="override the step budget")
+    local.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time")
+    local.add_argument("--device", default=None, help="auto (default), cpu or cuda for the PPO update")
+    service = p.add_argument_group("population service (configs/experiments)")
+    service.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS or a local Ray)")
+    service.add_argument("--generations", type=_positive_int, default=None, help="override the generations")
     return p
 
 
 def run_train(args: argparse.Namespace) -> int:
+    import json
     import logging
 
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        document = json.loads(Path(args.config).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError("", f"cannot read {args.config}: {exc}") from None
+    if isinstance(document, dict) and "algorithm" in document:
+        return _train_service(args)
+    return _train_local(args)
+
+
+def _train_local(args: argparse.Namespace) -> int:
     from atdrone.algos.trainer import load_train_config, run_training
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     cfg = load_train_config(
         args.config,
         seed=args.seed,
@@ -186,6 +203,32 @@ def run_train(args: argparse.Namespace) -> int:
     print(f"{cfg.name}: {trainer.env_steps} env steps; last evaluation: {evals or 'none'}")
     print(f"checkpoint: {trainer.run_dir / 'last.pt'}; curve: {trainer.run_dir / 'curve.png'}")
     print(f"MLflow run {trainer.run_id} (browse: mlflow ui --backend-store-uri sqlite:///mlflow.db)")
+    return 0
+
+
+def _train_service(args: argparse.Namespace) -> int:
+    from atdrone.service.driver import run_experiment
+    from atdrone.service.experiment import load_experiment
+
+    cfg = load_experiment(
+        args.config, seed=args.seed, name=args.name, out_dir=args.out_dir, generations=args.generations
+    )
+    try:
+        summary = run_experiment(cfg, address=args.address, resume=args.resume, progress=not args.no_progress)
+    except FileExistsError as exc:
+        print(f"atdrone train: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    import pandas as pd
+
+    with pd.option_context("display.float_format", "{:.2f}".format, "display.width", 120):
+        print(f"\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):")
+        print(summary["population"].to_string(index=False))
+    print(f"best member: {summary['best']}; run directory: {summary['run_dir']}")
+    print(f"registry: atdrone registry --db {summary['run_dir']}/registry.db list")
+    print(
+        f"MLflow: experiment {cfg.name!r}, run {summary['mlflow_run_id']}; "
+        "browse with: mlflow ui --backend-store-uri sqlite:///mlflow.db"
+    )
     return 0
 
 

@@ -22,7 +22,7 @@ from atdrone.config import TaskConfig, load_task
 from atdrone.envs.core import CAPTURED, DONE_REASONS, BatchedPursuit
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import Zoo, load_zoo
-from atdrone.teams import Match
+from atdrone.teams import Match, PartnerSampler
 
 METRICS = ("SUC", "COL", "AST", "REW")
 MAX_ENVS = 1024
@@ -75,8 +75,12 @@ def run_episodes(
     seed: int = 0,
     max_envs: int = MAX_ENVS,
     on_progress: Callable[[int], None] | None = None,
+    sampler: PartnerSampler | None = None,
 ) -> pd.DataFrame:
-    """Play ``episodes`` episodes of ``learner`` with ``partners``; one record per episode."""
+    """Play ``episodes`` episodes of ``learner`` with ``partners``; one record per episode.
+
+    ``sampler`` picks the partner members of each episode (default: uniformly per slot).
+    """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     cfg = load_task(task)
@@ -84,7 +88,7 @@ def run_episodes(
     for c, start in enumerate(range(0, episodes, max_envs)):
         n = min(max_envs, episodes - start)
         core = BatchedPursuit(cfg, num_envs=n, seed=_derive(seed, c, 0))
-        match = Match(core, partners, seed=_derive(seed, c, 1))
+        match = Match(core, partners, seed=_derive(seed, c, 1), sampler=sampler)
         match.reset()
         learner.reset(np.ones(n, dtype=bool))
         finished = np.zeros(n, dtype=bool)

@@ -100,11 +100,12 @@ class Zoo:
                 "`atdrone train configs/train/sp_high.json` / `sp_low.json` (see README)."
             )
         if self._policies is None:
-            self._policies = [_build(m) for m in self.spec.members]
+            self._policies = [build_policy(m) for m in self.spec.members]
         return self._policies
 
 
-def _build(spec: MemberSpec) -> Policy:
+def build_policy(spec: MemberSpec) -> Policy:
+    """The policy of one member spec: a rule-based drone, or a checkpoint loaded from disk."""
     policy = RULES[spec.kind](**spec.params) if spec.kind in RULES else load_checkpoint(checkpoint_path(spec))
     policy.name = spec.name
     return policy
