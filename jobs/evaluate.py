@@ -1,21 +1,20 @@
-"""Ray job entrypoint: evaluate one policy with a zoo of unseen partners on one task.
+"""Ray job entrypoint: evaluate a policy with zoos of unseen partners on tasks.
 
     ray job submit --address http://HEAD:8265 --working-dir . -- \
-        python jobs/evaluate.py --policy greedy|vicsek|PATH --task 4p2e1o --zoo zoo1 --episodes 500 --out DIR
+        python jobs/evaluate.py --policy greedy|vicsek|PATH --task 4p2e1o|all --zoo zoo1|all --episodes 500 --out DIR
 
-Plays --episodes episodes per seed with the policy in the task's learner slots and
-partners drawn from the zoo (``atdrone.evaluation.evaluate``), prints SUC / COL / AST /
-REW and writes ``DIR/<policy>_<task>_<zoo>.json`` (summary and per-seed metrics) and
-``.csv`` (one row per episode). The evaluation runs in the job's driver process; on a
-cluster, give --out a path on storage that you can read afterwards. Bad input exits
-with status 2 and a one-line error.
+The same protocol and files as ``atdrone evaluate``: every task x zoo cell plays
+--episodes episodes per seed with the policy in the task's learner slots and partners
+drawn from the zoo (``atdrone.evaluation.evaluate_grid``); prints the SUC / COL / AST /
+REW table and writes ``DIR/<policy>_<task>_<zoo>.json`` (per cell: summary and per-seed
+metrics) and ``.csv`` (one row per episode) through ``atdrone.reports``. It runs in the
+job's driver process; on a cluster give --out an absolute path you can read afterwards.
+Bad input exits with status 2 and a one-line error.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
 from pathlib import Path
 
@@ -37,53 +36,50 @@ def _positive_int(text: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     p.add_argument("--policy", required=True, help="the learner: greedy, vicsek or a checkpoint PATH")
-    p.add_argument("--task", default="4p2e1o", help="task name (4p2e1o, 4p2e3o, 4p2e5o, 4p3e5o) or JSON path")
-    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3) or JSON path")
-    p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed (default 500)")
+    p.add_argument("--task", default="4p2e1o", help="task name (4p2e1o, 4p2e3o, 4p2e5o, 4p3e5o), JSON path, or all")
+    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
+    p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default: 0)")
     p.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     return p
 
 
-def _finite(value: float) -> float | None:
-    return value if math.isfinite(value) else None
+def _fail(message: object) -> int:
+    print(f"{PROG}: error: {message}".splitlines()[0], file=sys.stderr)
+    return EXIT_USAGE
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from atdrone.checkpoint import CheckpointError, atomic_write_bytes, load_policy
-    from atdrone.config import ConfigError, load_task
-    from atdrone.evaluation import METRICS, evaluate
-    from atdrone.policies.zoo import RULES, ZooError, load_zoo
+    from atdrone.config import TASK_NAMES, ConfigError, load_task
+    from atdrone.evaluation import evaluate_grid
+    from atdrone.policies.zoo import RULES, ZOO_NAMES, PolicyError, load_zoo, policy_from_spec
+    from atdrone.reports import format_table, write_report
 
     try:
-        task = load_task(args.task)
-        zoo = load_zoo(args.zoo)
-        if args.policy in RULES:
-            learner, label = RULES[args.policy](), args.policy
-            learner.name = label
-        else:
-            learner, label = load_policy(args.policy), Path(args.policy).stem
-        result = evaluate(learner, task, zoo, episodes=args.episodes, seeds=args.seeds)
-    except (ConfigError, CheckpointError, ZooError) as exc:
-        print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
-        return EXIT_USAGE
-    summary = {k: (_finite(v) if isinstance(v, float) else v) for k, v in result.summary().items()}
-    summary.update({"policy": args.policy, "seed_list": list(args.seeds)})
-    per_seed = [
-        {"seed": int(s), **{m: _finite(float(row[m])) for m in METRICS}} for s, row in result.per_seed.iterrows()
-    ]
-    stem = args.out / f"{label}_{task.name}_{zoo.name}"
+        tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]
+        zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
+        learner = policy_from_spec(args.policy)
+    except (ConfigError, PolicyError) as exc:
+        return _fail(exc)
+    for zoo in zoos:
+        if zoo.missing:
+            print(f"{PROG}: warning: zoo {zoo.name} is missing {', '.join(zoo.missing)}; skipped", file=sys.stderr)
+    if all(zoo.missing for zoo in zoos):
+        return _fail(f"no zoo has all its members ({', '.join(z.name for z in zoos)}); nothing to evaluate")
+    cells = evaluate_grid(learner, tasks, zoos, args.episodes, args.seeds)
+    print(format_table(cells, args.policy, args.episodes, args.seeds))
+    label = args.policy if args.policy in RULES else Path(args.policy).stem
+    stem = f"{label}_{'all' if args.task == 'all' else tasks[0].name}_{'all' if args.zoo == 'all' else zoos[0].name}"
     try:
-        atomic_write_bytes(f"{stem}.json", json.dumps({"summary": summary, "per_seed": per_seed}, indent=2).encode())
-        atomic_write_bytes(f"{stem}.csv", result.records.to_csv(index=False).encode())
+        json_path, csv_path = write_report(args.out, stem, cells, args.policy, args.episodes, args.seeds)
     except OSError as exc:
-        print(f"{PROG}: error: cannot write {stem}.*: {exc}", file=sys.stderr)
+        print(f"{PROG}: error: cannot write the report to {args.out}: {exc}", file=sys.stderr)
         return 1
-    mean, std = result.mean, result.std
-    cells = ", ".join(f"{m} {mean[m]:.2f} ± {std[m]:.2f}" for m in METRICS)
-    print(f"evaluate {label} on {task.name} with {zoo.name}: {len(result.records)} episodes; {cells}")
-    print(f"wrote {stem}.json and {stem}.csv")
+    played = [c for c in cells if c.evaluation is not None]
+    episodes = sum(len(c.evaluation.records) for c in played if c.evaluation is not None)
+    print(f"\n{PROG}: {label} evaluated on {len(played)} of {len(cells)} task x zoo cells, {episodes} episodes")
+    print(f"wrote {json_path} and {csv_path}")
     return 0
 
 

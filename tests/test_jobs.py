@@ -50,12 +50,13 @@ def test_evaluate_script_writes_its_outputs(tmp_path: Path) -> None:
     out = tmp_path / "eval"
     proc = _run(EVALUATE, "--policy", "greedy", "--task", "4p2e1o", "--zoo", "zoo1", "--episodes", "20", "--out", out)
     assert proc.returncode == 0, proc.stderr
-    assert "evaluate greedy on 4p2e1o with zoo1: 20 episodes" in proc.stdout
+    assert "jobs/evaluate.py: greedy evaluated on 1 of 1 task x zoo cells, 20 episodes" in proc.stdout
+    assert "SUC %" in proc.stdout  # the table, as `atdrone evaluate` prints it
     report = json.loads((out / "greedy_4p2e1o_zoo1.json").read_text())
-    assert report["summary"]["episodes"] == 20
-    assert report["summary"]["task"] == "4p2e1o" and report["summary"]["zoo"] == "zoo1"
-    assert 0 <= report["summary"]["SUC"] <= 100
-    assert [row["seed"] for row in report["per_seed"]] == [0]
+    (cell,) = report["cells"]
+    assert cell["status"] == "ok" and cell["task"] == "4p2e1o" and cell["zoo"] == "zoo1"
+    assert cell["summary"]["episodes"] == 20 and 0 <= cell["summary"]["SUC"] <= 100
+    assert [row["seed"] for row in cell["per_seed"]] == [0]
     episodes = pd.read_csv(out / "greedy_4p2e1o_zoo1.csv")
     assert len(episodes) == 20 and {"success", "collided", "length", "return"} <= set(episodes.columns)
 
@@ -236,8 +237,8 @@ def test_jobs_submitted_to_a_ray_head_succeed(ray_head: str, tmp_path: Path) -> 
     for job, outcome in outcomes.items():
         assert outcome == "SUCCEEDED", f"{job}: {outcome}\n{logs[job][-3000:]}"
 
-    assert "evaluate greedy on 4p2e1o with zoo1: 10 episodes" in logs[evaluate]
-    assert json.loads((tmp_path / "greedy_4p2e1o_zoo1.json").read_text())["summary"]["episodes"] == 10
+    assert "greedy evaluated on 1 of 1 task x zoo cells, 10 episodes" in logs[evaluate]
+    assert json.loads((tmp_path / "greedy_4p2e1o_zoo1.json").read_text())["cells"][0]["summary"]["episodes"] == 10
 
     assert "population of jobtest (hola, 4p2e1o)" in logs[train] and "jobs/train.py: done" in logs[train]
     run_dir = tmp_path / "runs" / "jobtest"
