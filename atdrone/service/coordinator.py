@@ -92,7 +92,9 @@ class Coordinator:
 
     def _learner(self, init_from: str | None = None) -> Any:
         self.learner_seed += 1
-        learner = LearnerActor.remote(self.net, self.ppo, self.task.players.num_e, self.num_p, self.learner_seed)
+        learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(
+            self.net, self.ppo, self.task.players.num_e, self.num_p, self.learner_seed
+        )
         if init_from is not None:
             from atdrone.checkpoint import load_checkpoint
 

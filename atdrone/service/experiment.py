@@ -35,7 +35,8 @@ class ExperimentConfig:
     learners_per_generation: best-response learners dispatched per generation (HOLA).
     eval_episodes: episodes per hyperedge (evaluation match). final_zoo /
     final_episodes: the zoo every member is evaluated on at the end (empty: skip).
-    zoo: the partners of ``br``. ppo: overrides of the PPO preset.
+    zoo: the partners of ``br``. ppo: overrides of the PPO preset. learner_gpus: GPUs
+    each learner actor asks Ray for (its PPO update then runs on CUDA; 0: CPU).
     """
 
     name: str
@@ -58,6 +59,7 @@ class ExperimentConfig:
     ppo: dict[str, Any] = field(default_factory=dict)
     out_dir: str = "runs"
     gif: bool = True
+    learner_gpus: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -95,6 +97,8 @@ def load_experiment(path_or_doc: str | Path | dict[str, Any], **overrides: Any) 
                 raise ConfigError(key, str(exc)) from None
     if cfg.algorithm in ("pbt", "hola", "hola_no_g") and cfg.population_size < 2:
         raise ConfigError("population_size", f"a population needs at least 2 members, got {cfg.population_size}")
+    if cfg.learner_gpus < 0:
+        raise ConfigError("learner_gpus", f"must be >= 0, got {cfg.learner_gpus}")
     if cfg.pbt_perturb <= 1.0:
         raise ConfigError("pbt_perturb", f"must be > 1, got {cfg.pbt_perturb}")
     return cfg
