@@ -17,9 +17,7 @@ import datetime as dt
 import hashlib
 import io
 import json
-import os
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +26,7 @@ import torch
 
 from atdrone.algos.networks import ActorCritic, NetConfig
 from atdrone.envs.core import OBS_LAYOUT_VERSION
+from atdrone.fileio import atomic_write_bytes
 from atdrone.policies.base import DroneBatch
 
 MAGIC = b"ATDRONE-CHECKPOINT 1\n"
@@ -47,23 +46,6 @@ def git_commit() -> str:
         return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to a temp file beside ``path`` and rename it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def save_checkpoint(path: str | Path, model: ActorCritic, header: dict[str, Any]) -> dict[str, Any]:

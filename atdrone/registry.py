@@ -33,7 +33,6 @@ import os
 import re
 import secrets
 import sqlite3
-import tempfile
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -41,6 +40,8 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
+
+from atdrone.fileio import atomic_write, atomic_write_bytes
 
 SCHEMA_VERSION = 1
 STATUSES = ("active", "retired", "missing")
@@ -160,20 +161,6 @@ def _check_ids(name: str, value: Any) -> list[str]:
     for v in value:
         _check_text(f"each of {name}", v)
     return list(value)
-
-
-def _replace_atomically(path: Path, write: Any) -> None:
-    """Call ``write(tmp_path)`` on a temp file beside ``path``, then rename it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class Registry:
@@ -540,9 +527,9 @@ class Registry:
         frame = self._query(f"SELECT * FROM {table} ORDER BY {order}")
         out = Path(path)
         if format == "csv":
-            _replace_atomically(out, lambda tmp: frame.to_csv(tmp, index=False))
+            atomic_write_bytes(out, frame.to_csv(index=False).encode())
         else:
-            _replace_atomically(out, lambda tmp: frame.to_parquet(tmp, index=False))
+            atomic_write(out, lambda f: frame.to_parquet(f, index=False))
         return out
 
 

@@ -83,7 +83,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     out.mkdir(parents=True, exist_ok=True)
-    from atdrone.checkpoint import atomic_write_bytes
+    from atdrone.fileio import atomic_write_bytes
 
     atomic_write_bytes(out / "runs.csv", frame.to_csv(index=False).encode())
     doc = {

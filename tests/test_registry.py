@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -240,8 +241,8 @@ def test_failed_export_leaves_the_old_file_and_no_temp_file(
     out = tmp_path / "members.parquet"
     out.write_bytes(b"old")
 
-    def broken(self: pd.DataFrame, path: str, **kwargs: object) -> None:
-        Path(path).write_bytes(b"half")
+    def broken(self: pd.DataFrame, target: Any, **kwargs: object) -> None:
+        target.write(b"half")  # part of the file reaches the temp file, then the disk fills
         raise OSError("disk full")
 
     monkeypatch.setattr(pd.DataFrame, "to_parquet", broken)

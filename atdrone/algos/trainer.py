@@ -23,9 +23,10 @@ import torch
 
 from atdrone.algos.networks import ActorCritic, NetConfig
 from atdrone.algos.ppo import PPOConfig, learning_rate, ppo_config, ppo_update
-from atdrone.checkpoint import NeuralPolicy, atomic_write_bytes, save_checkpoint
+from atdrone.checkpoint import NeuralPolicy, save_checkpoint
 from atdrone.config import ConfigError, load_task, parse_document, read_document
 from atdrone.evaluation import metrics, run_episodes
+from atdrone.fileio import atomic_write_bytes
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import load_zoo
 from atdrone.rollout import RolloutWorker

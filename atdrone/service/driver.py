@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from atdrone.checkpoint import atomic_write_bytes
+from atdrone.fileio import atomic_write_bytes
 from atdrone.service.experiment import ExperimentConfig, registry_name
 
 log = logging.getLogger(__name__)

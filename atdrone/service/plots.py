@@ -9,7 +9,7 @@ from typing import Any
 
 import pandas as pd
 
-from atdrone.checkpoint import atomic_write_bytes
+from atdrone.fileio import atomic_write_bytes
 
 
 def _figure(width: float, height: float) -> tuple[Any, Any, Any]:
