@@ -207,7 +207,7 @@ def _train_local(args: argparse.Namespace) -> int:
 
 
 def _train_service(args: argparse.Namespace) -> int:
-    from atdrone.service.driver import run_experiment
+    from atdrone.service.driver import format_summary, run_experiment
     from atdrone.service.experiment import load_experiment
 
     cfg = load_experiment(
@@ -218,17 +218,9 @@ def _train_service(args: argparse.Namespace) -> int:
     except FileExistsError as exc:
         print(f"atdrone train: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    import pandas as pd
+    from atdrone.tracking import tracking_uri
 
-    with pd.option_context("display.float_format", "{:.2f}".format, "display.width", 120):
-        print(f"\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):")
-        print(summary["population"].to_string(index=False))
-    print(f"best member: {summary['best']}; run directory: {summary['run_dir']}")
-    print(f"registry: atdrone registry --db {summary['run_dir']}/registry.db list")
-    print(
-        f"MLflow: experiment {cfg.name!r}, run {summary['mlflow_run_id']}; "
-        "browse with: mlflow ui --backend-store-uri sqlite:///mlflow.db"
-    )
+    print(format_summary(cfg, summary, tracking_uri()))
     return 0
 
 

@@ -372,6 +372,28 @@ def read_document(name_or_path: str | Path, kind: str, names: tuple[str, ...] = 
         raise ConfigError("", f"{path} is not valid JSON: {exc}") from None
 
 
+def load_config(schema: Any, path_or_doc: str | Path | Mapping[str, Any], kind: str, **overrides: Any) -> Any:
+    """A document of configs/<kind>/ (a path or a mapping), with non-None overrides, validated against ``schema``."""
+    doc = dict(path_or_doc) if isinstance(path_or_doc, Mapping) else read_document(path_or_doc, kind)
+    doc.update({k: v for k, v in overrides.items() if v is not None})
+    return parse_document(schema, doc)
+
+
+def check_task_field(task: str, path: str = "task") -> TaskConfig:
+    """Load the task a config names; its errors are reported under ``path``."""
+    try:
+        return load_task(task)
+    except ConfigError as exc:
+        raise ConfigError(path, str(exc)) from None
+
+
+def require_at_least(cfg: Any, names: tuple[str, ...], minimum: float = 1) -> None:
+    """ConfigError naming the first of ``names`` whose value is below ``minimum``."""
+    for name in names:
+        if getattr(cfg, name) < minimum:
+            raise ConfigError(name, f"must be >= {minimum}, got {getattr(cfg, name)}")
+
+
 def load_task(name_or_path: str | Path | Mapping[str, Any] | TaskConfig) -> TaskConfig:
     """Load a task by paper name, JSON path or mapping; raise ConfigError when invalid."""
     if isinstance(name_or_path, TaskConfig):

@@ -28,18 +28,9 @@ if str(REPO_ROOT) not in sys.path:  # `--working-dir .` on nodes that only have 
 PROG = "jobs/train.py"
 EXIT_USAGE = 2
 # integer config keys that can be overridden from the command line
-INT_OVERRIDES = (
-    "seed",
-    "generations",
-    "updates_per_generation",
-    "num_workers",
-    "envs_per_worker",
-    "rollout_steps",
-    "population_size",
-    "learners_per_generation",
-    "eval_episodes",
-    "final_episodes",
-)
+from atdrone.service.experiment import POSITIVE_INTS  # noqa: E402 - after the sys.path set-up
+
+INT_OVERRIDES = ("seed", *POSITIVE_INTS)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.config import ConfigError
-    from atdrone.service.driver import run_experiment
+    from atdrone.service.driver import format_summary, run_experiment
     from atdrone.service.experiment import load_experiment
 
     overrides = {key: getattr(args, key) for key in INT_OVERRIDES}
@@ -87,16 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     except FileExistsError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    import pandas as pd
-
-    with pd.option_context("display.float_format", "{:.2f}".format, "display.width", 120):
-        print(f"\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):")
-        print(summary["population"].to_string(index=False))
     from atdrone.tracking import tracking_uri
 
-    print(f"best member: {summary['best']}; run directory: {summary['run_dir']}")
-    print(f"registry: atdrone registry --db {summary['run_dir']}/registry.db list")
-    print(f"MLflow: experiment {cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri(args.tracking_uri)}")
+    print(format_summary(cfg, summary, tracking_uri(args.tracking_uri)))
     print(f"{PROG}: done")
     return 0
 

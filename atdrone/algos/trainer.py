@@ -24,7 +24,7 @@ import torch
 from atdrone.algos.networks import ActorCritic, NetConfig
 from atdrone.algos.ppo import PPOConfig, learning_rate, ppo_config, ppo_update
 from atdrone.checkpoint import NeuralPolicy, save_checkpoint
-from atdrone.config import ConfigError, load_task, parse_document, read_document
+from atdrone.config import ConfigError, check_task_field, load_config, load_task, require_at_least
 from atdrone.evaluation import metrics, run_episodes
 from atdrone.fileio import atomic_write_bytes
 from atdrone.policies.base import Policy
@@ -63,19 +63,12 @@ class TrainConfig:
 
 def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> TrainConfig:
     """A validated TrainConfig from a JSON file or mapping (plus overrides)."""
-    doc = dict(path_or_doc) if isinstance(path_or_doc, dict) else read_document(path_or_doc, "train")
-    doc.update({k: v for k, v in overrides.items() if v is not None})
-    cfg: TrainConfig = parse_document(TrainConfig, doc)
-    try:
-        load_task(cfg.task)
-    except ConfigError as exc:
-        raise ConfigError("task", str(exc)) from None
+    cfg: TrainConfig = load_config(TrainConfig, path_or_doc, "train", **overrides)
+    check_task_field(cfg.task)
     ppo_config(cfg.ppo, cfg.preset)
     if cfg.mode == "best_response" and not cfg.zoo:
         raise ConfigError("zoo", "best_response training needs a zoo")
-    for name in ("total_env_steps", "eval_every", "eval_episodes", "checkpoint_every", "torch_threads"):
-        if getattr(cfg, name) < 1:
-            raise ConfigError(name, f"must be >= 1, got {getattr(cfg, name)}")
+    require_at_least(cfg, ("total_env_steps", "eval_every", "eval_episodes", "checkpoint_every", "torch_threads"))
     if cfg.max_minutes < 0:
         raise ConfigError("max_minutes", f"must be >= 0, got {cfg.max_minutes}")
     return cfg

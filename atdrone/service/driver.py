@@ -196,3 +196,19 @@ def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> 
         save_gif(frames, gif, fps=10)
         tracker.log_artifact(gif)
     tracker.log_dict(header, "best_member_header.json")
+
+
+def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri: str) -> str:
+    """The end-of-run text: the population table and where to look (run dir, registry, MLflow)."""
+    with pd.option_context("display.float_format", "{:.2f}".format, "display.width", 120):
+        table = summary["population"].to_string(index=False)
+    return "\n".join(
+        [
+            f"\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):",
+            table,
+            f"best member: {summary['best']}; run directory: {summary['run_dir']}",
+            f"registry: atdrone registry --db {summary['run_dir']}/registry.db list",
+            f"MLflow: experiment {cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
+            f"browse with: mlflow ui --backend-store-uri {tracking_uri}",
+        ]
+    )

@@ -18,10 +18,22 @@ from pathlib import Path
 from typing import Any, Literal
 
 from atdrone.algos.ppo import ppo_config
-from atdrone.config import ConfigError, load_task, parse_document, read_document
+from atdrone.config import ConfigError, check_task_field, load_config, require_at_least
 from atdrone.policies.zoo import load_zoo
 
 ALGORITHMS = ("sp", "pbt", "hola", "hola_no_g", "br")
+# integer settings that must be >= 1 (jobs/train.py also offers them as overrides)
+POSITIVE_INTS = (
+    "generations",
+    "updates_per_generation",
+    "num_workers",
+    "envs_per_worker",
+    "rollout_steps",
+    "population_size",
+    "learners_per_generation",
+    "eval_episodes",
+    "final_episodes",
+)
 
 
 @dataclass(frozen=True)
@@ -67,26 +79,10 @@ class ExperimentConfig:
 
 def load_experiment(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> ExperimentConfig:
     """A validated ExperimentConfig from a JSON file (or mapping) plus overrides."""
-    doc = dict(path_or_doc) if isinstance(path_or_doc, dict) else read_document(path_or_doc, "experiments")
-    doc.update({k: v for k, v in overrides.items() if v is not None})
-    cfg: ExperimentConfig = parse_document(ExperimentConfig, doc)
-    try:
-        load_task(cfg.task)
-    except ConfigError as exc:
-        raise ConfigError("task", str(exc)) from None
+    cfg: ExperimentConfig = load_config(ExperimentConfig, path_or_doc, "experiments", **overrides)
+    check_task_field(cfg.task)
     ppo_config(cfg.ppo, cfg.preset)
-    for name in (
-        "generations",
-        "updates_per_generation",
-        "num_workers",
-        "envs_per_worker",
-        "rollout_steps",
-        "population_size",
-        "learners_per_generation",
-        "eval_episodes",
-    ):
-        if getattr(cfg, name) < 1:
-            raise ConfigError(name, f"must be >= 1, got {getattr(cfg, name)}")
+    require_at_least(cfg, POSITIVE_INTS)
     if cfg.algorithm == "br" and not cfg.zoo:
         raise ConfigError("zoo", "the br algorithm needs a zoo to respond to")
     for key in ("zoo", "final_zoo"):
