@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 class TrainConfig:
     """A training run. ``ppo`` overrides the ``preset`` (see atdrone.algos.ppo.PRESETS).
 
+    torch_threads: torch threads of the rollout (inference); update_threads: of the PPO
+    update, which runs while the rollout is idle (set both to 1 when sharing the cores).
     init_checkpoint: start from this policy's weights (e.g. a best response fine-tuned
     from a self-play drone); its architecture must match the PPO config's.
     """
@@ -56,6 +58,7 @@ class TrainConfig:
     checkpoint_every: int = 10
     out_dir: str = "runs"
     torch_threads: int = 1
+    update_threads: int = 2
     device: str = "auto"
     experiment: str = ""
     init_checkpoint: str = ""
@@ -68,7 +71,9 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     ppo_config(cfg.ppo, cfg.preset)
     if cfg.mode == "best_response" and not cfg.zoo:
         raise ConfigError("zoo", "best_response training needs a zoo")
-    require_at_least(cfg, ("total_env_steps", "eval_every", "eval_episodes", "checkpoint_every", "torch_threads"))
+    require_at_least(
+        cfg, ("total_env_steps", "eval_every", "eval_episodes", "checkpoint_every", "torch_threads", "update_threads")
+    )
     if cfg.max_minutes < 0:
         raise ConfigError("max_minutes", f"must be >= 0, got {cfg.max_minutes}")
     return cfg
@@ -191,6 +196,7 @@ class Trainer:
         self.worker.set_weights({k: v.cpu() for k, v in self.model.state_dict().items()})
         frag = self.worker.collect(self.ppo.rollout_steps)
         t1 = time.perf_counter()
+        torch.set_num_threads(self.cfg.update_threads)  # the rollout is idle while the update runs
         progress = self.env_steps / self.cfg.total_env_steps
         stats = ppo_update(
             self.model,
@@ -202,6 +208,7 @@ class Trainer:
             self.generator,
             lr=learning_rate(self.ppo, progress),
         )
+        torch.set_num_threads(self.cfg.torch_threads)
         t2 = time.perf_counter()
         self.env_steps += frag.dones.size
         self.updates += 1
