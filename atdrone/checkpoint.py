@@ -28,12 +28,13 @@ from atdrone.algos.networks import ActorCritic, NetConfig
 from atdrone.envs.core import OBS_LAYOUT_VERSION
 from atdrone.fileio import atomic_write_bytes
 from atdrone.policies.base import DroneBatch
+from atdrone.policies.zoo import PolicyError
 
 MAGIC = b"ATDRONE-CHECKPOINT 1\n"
 REQUIRED = ("architecture", "obs_layout_version", "task", "num_p", "num_e", "sha256")
 
 
-class CheckpointError(ValueError):
+class CheckpointError(PolicyError, ValueError):
     """A checkpoint file is corrupted, truncated or does not fit what it is loaded for."""
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from atdrone.config import TASK_NAMES, ConfigError
+from atdrone.policies.zoo import PolicyError
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
 
@@ -373,6 +374,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return COMMANDS[args.command].run(args)
     except ConfigError as exc:
+        print(f"atdrone {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except PolicyError as exc:  # a checkpoint that is missing, corrupted or does not fit
         print(f"atdrone {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:  # an output file that cannot be written

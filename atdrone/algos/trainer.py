@@ -24,7 +24,7 @@ import torch
 from atdrone.algos.networks import ActorCritic, NetConfig
 from atdrone.algos.ppo import PPOConfig, learning_rate, ppo_config, ppo_update
 from atdrone.checkpoint import NeuralPolicy, save_checkpoint
-from atdrone.config import ConfigError, check_task_field, load_config, load_task, require_at_least
+from atdrone.config import CONFIG_DIR, ConfigError, check_task_field, load_config, load_task, require_at_least
 from atdrone.evaluation import metrics, run_episodes
 from atdrone.fileio import atomic_write_bytes
 from atdrone.policies.base import Policy
@@ -106,7 +106,10 @@ class Trainer:
         if cfg.init_checkpoint:
             from atdrone.checkpoint import load_checkpoint
 
-            start, _ = load_checkpoint(cfg.init_checkpoint, expect_task=self.task.name)
+            path = Path(cfg.init_checkpoint)
+            if not path.is_absolute() and not path.exists():  # repository-relative, like zoo checkpoints
+                path = CONFIG_DIR.parent / path
+            start, _ = load_checkpoint(path, expect_task=self.task.name)
             if start.cfg != self.net:
                 raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}")
             self.model.load_state_dict(start.state_dict())
