@@ -158,25 +158,20 @@ class Coordinator:
         return member_id
 
     def _evaluate_teams(self, teams: list[tuple[str, ...]]) -> list[dict[str, Any]]:
-        """Play each team (learner id repeated num_ctrl times + partner ids) on the workers."""
-        calls = []
-        for i, team in enumerate(teams):
-            learner, profile = team[0], list(team[self.num_ctrl :])
-            worker = self.workers[i % len(self.workers)]
-            seed = self.cfg.seed * 100003 + self.generation * 1009 + i
-            calls.append(
-                worker.evaluate.remote(
-                    self.spec(learner), [self.spec(p) for p in profile], self.cfg.eval_episodes, seed
-                )
+        """Play each team (learner id repeated num_ctrl times + partner ids) on the workers; record the matches."""
+        seeds = [self.cfg.seed * 100003 + self.generation * 1009 + i for i in range(len(teams))]
+        calls = [
+            self.workers[i % len(self.workers)].evaluate.remote(
+                self.spec(team[0]), [self.spec(p) for p in team[self.num_ctrl :]], self.cfg.eval_episodes, seed
             )
-        results = ray.get(calls)
+            for i, (team, seed) in enumerate(zip(teams, seeds, strict=True))
+        ]
         rows = []
-        for i, (team, m) in enumerate(zip(teams, results, strict=True)):
-            seed = self.cfg.seed * 100003 + self.generation * 1009 + i
+        for team, seed, result in zip(teams, seeds, ray.get(calls), strict=True):
             self.registry.add_match.remote(
-                list(team), self.task.name, self.run, self.generation, [seed], self.cfg.eval_episodes, m
+                list(team), self.task.name, self.run, self.generation, [seed], self.cfg.eval_episodes, result
             )
-            rows.append({"team": list(team), **m})
+            rows.append({"team": list(team), **result})
         return rows
 
     def _slot_order(self, key: tuple[str, ...], learners: list[str]) -> tuple[str, ...]:
