@@ -31,19 +31,12 @@ def _spaces(core: BatchedPursuit) -> tuple[spaces.Box, spaces.Box]:
     return obs, act
 
 
-class PursuitEnv(gym.Env):
-    """One pursuit environment, every pursuer steered by the agent."""
+class _SingleView(gym.Env):
+    """A Gymnasium env over a SingleEnv (``self.env``): stepping and rendering."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
-
-    def __init__(self, task: TaskConfig | str = "4p2e1o", render_mode: str | None = None) -> None:
-        self.env = SingleEnv(task)
-        self.render_mode = render_mode
-        self.observation_space, self.action_space = _spaces(self.env.core)
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-        super().reset(seed=seed)
-        return self.env.reset(seed=seed), {}
+    env: SingleEnv
+    render_mode: str | None
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         out = self.env.step(action)
@@ -57,7 +50,20 @@ class PursuitEnv(gym.Env):
         return render_frame(self.env.core, 0)
 
 
-class AdaptiveTeamingEnv(gym.Env):
+class PursuitEnv(_SingleView):
+    """One pursuit environment, every pursuer steered by the agent."""
+
+    def __init__(self, task: TaskConfig | str = "4p2e1o", render_mode: str | None = None) -> None:
+        self.env = SingleEnv(task)
+        self.render_mode = render_mode
+        self.observation_space, self.action_space = _spaces(self.env.core)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        return self.env.reset(seed=seed), {}
+
+
+class AdaptiveTeamingEnv(_SingleView):
     """Adaptive teaming: the agent steers the learner drones, unseen zoo partners the rest.
 
     Description
@@ -96,8 +102,6 @@ class AdaptiveTeamingEnv(gym.Env):
         v0: first version (observation layout version 1).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
-
     def __init__(self, task: TaskConfig | str = "4p2e1o", zoo: Zoo | str = "zoo1", render_mode: str | None = None):
         from atdrone.policies.zoo import load_zoo  # atdrone.policies builds on atdrone.envs
         from atdrone.teams import Match
@@ -114,17 +118,6 @@ class AdaptiveTeamingEnv(gym.Env):
         super().reset(seed=seed)
         obs = self.env.reset(seed=seed)
         return obs, {"team": {k: v[0].tolist() for k, v in self.match.team().items()}}
-
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        out = self.env.step(action)
-        return out.obs, out.reward, out.terminated, out.truncated, out.info
-
-    def render(self) -> np.ndarray | None:
-        if self.render_mode is None:
-            return None
-        from atdrone.envs.render import render_frame
-
-        return render_frame(self.env.core, 0)
 
 
 class PursuitVectorEnv(VectorEnv):
