@@ -136,3 +136,26 @@ def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path
     (g2,) = second["reports"][0]["learners"]
     assert after.loc[g2, "parents"] == [before.index[-1]]
     assert second["mlflow_run_id"] == first["mlflow_run_id"]
+
+
+def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    cfg = _cfg(tmp_path, "pbt_t", algorithm="pbt", generations=2, population_size=2, final_zoo="")
+    summary = run_experiment(cfg, tracking_uri=uri, progress=False)
+    first, second = summary["reports"]
+    # generation 0 spreads the hyperparameters; the worst member then continues from the best one's weights
+    lrs = sorted(h["lr"] for h in first["hparams"].values())
+    assert lrs[0] < lrs[1]
+    ((loser, winner),) = first["exploited"].items()
+    assert first["fitness"][loser] <= first["fitness"][winner]
+    reg = Registry(tmp_path / "pbt_t" / "registry.db")
+    members = reg.members(run="pbt_t").set_index("id")
+    assert len(members) == 4 and sorted(members["generation"]) == [0, 0, 1, 1]
+    # every generation-1 member descends from a generation-0 member
+    assert all(members.loc[m, "parents"][0] in first["learners"] for m in second["learners"])
+
+    br = _cfg(tmp_path, "br_t", algorithm="br", zoo="zoo1", generations=1, final_zoo="zoo1")
+    summary = run_experiment(br, tracking_uri=uri, progress=False)
+    (member,) = summary["reports"][0]["learners"]
+    assert read_header(tmp_path / "br_t" / "members" / f"{member}.pt")["algorithm"] == "br"
+    assert summary["population"].loc[0, "zoo1_SUC"] >= 0.0

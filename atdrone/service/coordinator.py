@@ -60,6 +60,7 @@ class Coordinator:
         self.new_learners: list[str] = state.get("new_learners", [])
         self.eta: dict[str, float] = state.get("eta", {})
         self.hparams: dict[str, dict[str, float]] = state.get("hparams", {})
+        self.exploit_from: dict[str, str] = state.get("exploit_from", {})  # PBT: loser -> winner
         self.rng = np.random.default_rng(cfg.seed)
         if "rng" in state:
             self.rng.bit_generator.state = state["rng"]
@@ -74,6 +75,7 @@ class Coordinator:
             "new_learners": list(self.new_learners),
             "eta": dict(self.eta),
             "hparams": dict(self.hparams),
+            "exploit_from": dict(self.exploit_from),
             "rng": self.rng.bit_generator.state,
         }
 
@@ -90,7 +92,8 @@ class Coordinator:
     def checkpoint_path(self, member_id: str) -> Path:
         return (self.run_dir / "members" / f"{member_id}.pt").resolve()
 
-    def _learner(self, init_from: str | None = None) -> Any:
+    def _learner(self, init_from: str | None = None, hparams: dict[str, float] | None = None) -> Any:
+        """A fresh learner actor, with the weights (and hyperparameters) of ``init_from`` when given."""
         self.learner_seed += 1
         learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(
             self.net, self.ppo, self.task.players.num_e, self.num_p, self.learner_seed
@@ -100,9 +103,9 @@ class Coordinator:
 
             model, _ = load_checkpoint(self.checkpoint_path(init_from))
             ray.get(learner.set_weights.remote(model.state_dict()))
-            hp = self.hparams.get(init_from)
-            if hp:
-                ray.get(learner.set_hparams.remote(**hp))
+        hp = hparams if hparams is not None else self.hparams.get(init_from or "")
+        if hp:
+            ray.get(learner.set_hparams.remote(**hp))
         return learner
 
     def _train(
@@ -277,7 +280,9 @@ class Coordinator:
         new_members: list[str] = []
         history: dict[str, list[dict[str, float]]] = {}
         for i, parent in enumerate(previous):
-            learner = self._learner(init_from=parent)
+            # an exploited member continues from its winner's weights with its own perturbed hyperparameters
+            source = self.exploit_from.get(parent, parent) if parent else None
+            learner = self._learner(init_from=source, hparams=self.hparams.get(parent) if parent else None)
             if parent is None:  # first generation: spread the hyperparameters
                 f = self.cfg.pbt_perturb ** (i - (size - 1) / 2)
                 ray.get(learner.set_hparams.remote(lr=self.ppo.lr * f, ent_coef=self.ppo.ent_coef / f))
@@ -286,7 +291,7 @@ class Coordinator:
                 h = self._train(learner, [self.spec(m) for m in others], [1.0] * len(others), self.num_ctrl)
             else:
                 h = self._train(learner, [], None, self.num_p)
-            member = self._register(learner, "pbt", [parent] if parent else [], h)
+            member = self._register(learner, "pbt", [source] if source else [], h)
             ray.kill(learner)
             new_members.append(member)
             history[member] = h
@@ -307,10 +312,9 @@ class Coordinator:
             hp = dict(self.hparams[winner])
             hp["lr"] *= float(self.rng.choice([1 / self.cfg.pbt_perturb, self.cfg.pbt_perturb]))
             hp["ent_coef"] *= float(self.rng.choice([1 / self.cfg.pbt_perturb, self.cfg.pbt_perturb]))
-            # the loser continues from the winner's weights with perturbed hyperparameters
-            self.checkpoint_path(loser).write_bytes(self.checkpoint_path(winner).read_bytes())
             self.hparams[loser] = hp
             exploited[loser] = winner
+        self.exploit_from = exploited
         self.population = new_members
         return {
             "learners": new_members,
