@@ -51,7 +51,7 @@ def main() -> None:
     # self-play: the service path vs the single-process trainer, same envs and PPO settings
     from atdrone.registry import registry_actor
     from atdrone.service.coordinator import Coordinator
-    from atdrone.service.experiment import load_experiment
+    from atdrone.service.experiment import load_experiment, registry_name
 
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_experiment(
@@ -65,7 +65,8 @@ def main() -> None:
                 "out_dir": tmp,
             },
         )
-        registry_actor(f"{tmp}/registry.db")
+        # keep the handle: the actor lives as long as a handle does
+        _registry = registry_actor(f"{tmp}/registry.db", name=registry_name(cfg.name))
         coord = Coordinator.remote(cfg, f"{tmp}/bench")
         report = ray.get(coord.run_generation.remote())
         service = [r["perf/pursuer_steps_per_s"] for r in next(iter(report["history"].values()))][1:]
