@@ -45,6 +45,9 @@ def _interval(value: tuple[float, float]) -> str | None:
     return None if lo <= hi else f"must be [low, high] with low <= high, got {list(value)!r}"
 
 
+OPTIONAL = {"empty_ok": True}  # field metadata: an empty string is allowed and means "none"
+
+
 def _check(fn: Any) -> dict[str, Any]:
     return {"check": fn}
 
@@ -281,6 +284,9 @@ def _parse_dataclass(cls: Any, value: Any, path: str) -> Any:
         if name not in value:
             if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
                 raise ConfigError(sub, "missing key")
+            continue
+        if value[name] == "" and f.metadata.get("empty_ok"):  # an empty string that means "none"
+            kwargs[name] = ""
             continue
         parsed = _parse(hints[name], value[name], sub)
         check = f.metadata.get("check")

@@ -65,9 +65,8 @@ def main() -> None:
                 "out_dir": tmp,
             },
         )
-        # keep the handle: the actor lives as long as a handle does
-        _registry = registry_actor(f"{tmp}/registry.db", name=registry_name(cfg.name))
-        coord = Coordinator.remote(cfg, f"{tmp}/bench")
+        registry = registry_actor(f"{tmp}/registry.db", name=registry_name(cfg.name))
+        coord = Coordinator.remote(cfg, f"{tmp}/bench", None, registry)
         report = ray.get(coord.run_generation.remote())
         service = [r["perf/pursuer_steps_per_s"] for r in next(iter(report["history"].values()))][1:]
         service_rate = sum(service) / len(service)

@@ -98,8 +98,8 @@ def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp
     from atdrone.service.experiment import registry_name
 
     cfg = _cfg(tmp_path, "kill_t", algorithm="sp", generations=1, updates_per_generation=6, rollout_steps=64)
-    registry_actor(tmp_path / "kill.db", name=registry_name(cfg.name))
-    coordinator = Coordinator.remote(cfg, str(tmp_path / "kill_t"))
+    registry = registry_actor(tmp_path / "kill.db", name=registry_name(cfg.name))
+    coordinator = Coordinator.remote(cfg, str(tmp_path / "kill_t"), None, registry)
     pids = ray.get(coordinator.worker_pids.remote())
     workers = ray.get(coordinator.workers_handles.remote())
     pending = coordinator.run_generation.remote()

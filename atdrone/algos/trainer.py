@@ -24,7 +24,7 @@ import torch
 from atdrone.algos.networks import ActorCritic, NetConfig
 from atdrone.algos.ppo import PPOConfig, learning_rate, ppo_config, ppo_update
 from atdrone.checkpoint import NeuralPolicy, save_checkpoint
-from atdrone.config import CONFIG_DIR, ConfigError, check_task_field, load_config, load_task, require_at_least
+from atdrone.config import CONFIG_DIR, OPTIONAL, ConfigError, check_task_field, load_config, load_task, require_at_least
 from atdrone.evaluation import metrics, run_episodes
 from atdrone.fileio import atomic_write_bytes
 from atdrone.policies.base import Policy
@@ -47,7 +47,7 @@ class TrainConfig:
     name: str
     task: str
     mode: Literal["self_play", "mappo", "best_response"] = "self_play"
-    zoo: str = ""
+    zoo: str = field(default="", metadata=OPTIONAL)
     seed: int = 0
     total_env_steps: int = 2_000_000
     max_minutes: float = 0.0
@@ -60,8 +60,8 @@ class TrainConfig:
     torch_threads: int = 1
     update_threads: int = 2
     device: str = "auto"
-    experiment: str = ""
-    init_checkpoint: str = ""
+    experiment: str = field(default="", metadata=OPTIONAL)
+    init_checkpoint: str = field(default="", metadata=OPTIONAL)
 
 
 def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> TrainConfig:

@@ -38,14 +38,17 @@ from atdrone.service.experiment import ExperimentConfig, registry_name
 class Coordinator:
     """Owns the rollout workers and learners of one experiment run."""
 
-    def __init__(self, cfg: ExperimentConfig, run_dir: str, state: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self, cfg: ExperimentConfig, run_dir: str, state: dict[str, Any] | None = None, registry: Any = None
+    ) -> None:
         self.cfg = cfg
         self.run = cfg.name
         self.run_dir = Path(run_dir)
         self.task = load_task(cfg.task)
         self.ppo = ppo_config(cfg.ppo, cfg.preset)
         self.net = NetConfig(entity_dim=self.ppo.entity_dim, hidden=self.ppo.hidden, init_log_std=self.ppo.init_log_std)
-        self.registry = find_registry_actor(registry_name(cfg.name))
+        # the run's registry actor: passed in (the handle keeps it alive) or found by name
+        self.registry = registry if registry is not None else find_registry_actor(registry_name(cfg.name))
         self.num_p = self.task.players.num_p
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl

@@ -66,11 +66,9 @@ def run_experiment(
 
     ``stop_after``: stop once this many generations are complete (for tests of resume).
     """
-    import ray
 
     from atdrone.registry import registry_actor
     from atdrone.service.coordinator import Coordinator
-    from atdrone.tracking import Tracker
 
     run_dir = Path(cfg.out_dir).resolve() / cfg.name
     state_path = run_dir / STATE_FILE
@@ -83,7 +81,29 @@ def run_experiment(
     _write_json(run_dir / "config.json", cfg.to_dict())
     init_ray(address, num_cpus)
     registry = registry_actor(run_dir / "registry.db", name=registry_name(cfg.name))
-    coordinator = Coordinator.remote(cfg, str(run_dir), saved.get("coordinator"))
+    coordinator = Coordinator.remote(cfg, str(run_dir), saved.get("coordinator"), registry)
+    try:
+        return _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
+    finally:  # the run's actors end with it; the registry's name is free for the next run
+        _release(coordinator, registry, registry_name(cfg.name))
+
+
+def _generations(
+    cfg: ExperimentConfig,
+    coordinator: Any,
+    registry: Any,
+    run_dir: Path,
+    saved: dict[str, Any],
+    tracking_uri: str | None,
+    progress: bool,
+    stop_after: int | None,
+) -> dict[str, Any]:
+    """Ask the coordinator for the remaining generations, logging each; then the final evaluation."""
+    import ray
+
+    from atdrone.tracking import Tracker
+
+    state_path = run_dir / STATE_FILE
     tracker = Tracker(tracking_uri)
     reports: list[dict[str, Any]] = []
     with tracker.run(cfg.name, f"{cfg.name}-{cfg.algorithm}", run_id=saved.get("mlflow_run_id")) as run_id:
@@ -110,6 +130,23 @@ def run_experiment(
         summary = _finish(tracker, coordinator, registry, cfg, run_dir)
         summary.update({"run_dir": str(run_dir), "mlflow_run_id": run_id, "reports": reports})
     return summary
+
+
+def _release(coordinator: Any, registry: Any, name: str, timeout_s: float = 30.0) -> None:
+    """Kill the run's coordinator (and with it its workers) and registry actor; wait for the name to be free."""
+    import ray
+
+    from atdrone.registry import REGISTRY_NAMESPACE
+
+    ray.kill(coordinator)
+    ray.kill(registry, no_restart=True)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            ray.get_actor(name, namespace=REGISTRY_NAMESPACE)
+        except ValueError:
+            return
+        time.sleep(0.1)
 
 
 def _log_generation(tracker: Any, report: dict[str, Any], run_dir: Path, registry: Any, cfg: ExperimentConfig) -> None:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from atdrone.algos.ppo import ppo_config
-from atdrone.config import ConfigError, check_task_field, load_config, require_at_least
+from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, require_at_least
 from atdrone.policies.zoo import load_zoo
 
 ALGORITHMS = ("sp", "pbt", "hola", "hola_no_g", "br")
@@ -63,8 +63,8 @@ class ExperimentConfig:
     population_size: int = 4
     learners_per_generation: int = 1
     eval_episodes: int = 64
-    zoo: str = ""
-    final_zoo: str = "zoo1"
+    zoo: str = field(default="", metadata=OPTIONAL)
+    final_zoo: str = field(default="zoo1", metadata=OPTIONAL)
     final_episodes: int = 200
     pbt_perturb: float = 1.25
     preset: str = "default"
