@@ -106,7 +106,9 @@ def _generations(
     state_path = run_dir / STATE_FILE
     tracker = Tracker(tracking_uri)
     reports: list[dict[str, Any]] = []
-    with tracker.run(cfg.name, f"{cfg.name}-{cfg.algorithm}", run_id=saved.get("mlflow_run_id")) as run_id:
+    with tracker.run(
+        cfg.experiment or cfg.name, f"{cfg.name}-{cfg.algorithm}", run_id=saved.get("mlflow_run_id")
+    ) as run_id:
         tracker.log_params({"experiment": cfg.to_dict()})
         tracker.set_tags({"atdrone.algorithm": cfg.algorithm, "atdrone.task": cfg.task})
         tracker.log_artifact(run_dir / "config.json")
@@ -245,7 +247,7 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
             table,
             f"best member: {summary['best']}; run directory: {summary['run_dir']}",
             f"registry: atdrone registry --db {summary['run_dir']}/registry.db list",
-            f"MLflow: experiment {cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
+            f"MLflow: experiment {cfg.experiment or cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
             f"browse with: mlflow ui --backend-store-uri {tracking_uri}",
         ]
     )

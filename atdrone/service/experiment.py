@@ -13,12 +13,13 @@ a ConfigError naming the field.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 from atdrone.algos.ppo import ppo_config
-from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, require_at_least
+from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, read_document, require_at_least
 from atdrone.policies.zoo import load_zoo
 
 ALGORITHMS = ("sp", "pbt", "hola", "hola_no_g", "br")
@@ -49,6 +50,8 @@ class ExperimentConfig:
     final_episodes: the zoo every member is evaluated on at the end (empty: skip).
     zoo: the partners of ``br``. ppo: overrides of the PPO preset. learner_gpus: GPUs
     each learner actor asks Ray for (its PPO update then runs on CUDA; 0: CPU).
+    experiment: the MLflow experiment (default: the config's own name, kept when a run
+    is renamed with an override, so every run of one config lands in one experiment).
     """
 
     name: str
@@ -72,6 +75,7 @@ class ExperimentConfig:
     out_dir: str = "runs"
     gif: bool = True
     learner_gpus: float = 0.0
+    experiment: str = field(default="", metadata=OPTIONAL)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -79,7 +83,10 @@ class ExperimentConfig:
 
 def load_experiment(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> ExperimentConfig:
     """A validated ExperimentConfig from a JSON file (or mapping) plus overrides."""
-    cfg: ExperimentConfig = load_config(ExperimentConfig, path_or_doc, "experiments", **overrides)
+    base = dict(path_or_doc) if isinstance(path_or_doc, Mapping) else read_document(path_or_doc, "experiments")
+    if isinstance(base, dict) and isinstance(base.get("name"), str) and overrides.get("experiment") is None:
+        overrides["experiment"] = base.get("experiment") or base["name"]
+    cfg: ExperimentConfig = load_config(ExperimentConfig, base, "experiments", **overrides)
     check_task_field(cfg.task)
     ppo_config(cfg.ppo, cfg.preset)
     require_at_least(cfg, POSITIVE_INTS)
