@@ -12,6 +12,7 @@ import json
 import platform
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +43,18 @@ def batched(task: str, num_envs: int, seconds: float) -> float:
     return _rate(step, seconds)
 
 
+def parallel_env_rate(env: Any, actions: list[dict], seconds: float) -> float:
+    """Steps/s of a PettingZoo ParallelEnv stepped with ``actions`` in turn, reset at episode ends."""
+
+    def step(i: int) -> int:
+        env.step(actions[i % len(actions)])
+        if not env.agents:
+            env.reset()
+        return 1
+
+    return _rate(step, seconds)
+
+
 def pettingzoo_view(task: str, seconds: float) -> float:
     from atdrone.envs import PursuitParallelEnv
 
@@ -49,14 +62,7 @@ def pettingzoo_view(task: str, seconds: float) -> float:
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     actions = [{a: rng.uniform(-0.3, 0.3, 1).astype(np.float32) for a in env.possible_agents} for _ in range(16)]
-
-    def step(i: int) -> int:
-        env.step(actions[i % 16])
-        if not env.agents:
-            env.reset()
-        return 1
-
-    return _rate(step, seconds)
+    return parallel_env_rate(env, actions, seconds)
 
 
 def mpe2_simple_tag(seconds: float) -> float:
@@ -69,14 +75,7 @@ def mpe2_simple_tag(seconds: float) -> float:
     rng = np.random.default_rng(0)
     spaces = {a: env.action_space(a) for a in env.possible_agents}
     actions = [{a: rng.uniform(s.low, s.high).astype(np.float32) for a, s in spaces.items()} for _ in range(16)]
-
-    def step(i: int) -> int:
-        env.step(actions[i % 16])
-        if not env.agents:
-            env.reset()
-        return 1
-
-    return _rate(step, seconds)
+    return parallel_env_rate(env, actions, seconds)
 
 
 def main() -> None:
