@@ -26,13 +26,23 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, default=40, help="updates between evaluations")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="reports/learning_sp")
+    parser.add_argument("--ppo", default="{}", help="PPO overrides as JSON, e.g. '{\"lr\": 1e-4}'")
+    parser.add_argument("--update-threads", type=int, default=2, help="torch threads of the update")
     args = parser.parse_args()
 
     from atdrone.algos.trainer import Trainer, load_train_config, plot_curve
 
     out = Path(args.out)
     cfg = load_train_config(
-        {"name": "learning_sp", "task": args.task, "seed": args.seed, "total_env_steps": 10**9, "out_dir": str(out)}
+        {
+            "name": "learning_sp",
+            "task": args.task,
+            "seed": args.seed,
+            "total_env_steps": 10**9,
+            "out_dir": str(out),
+            "ppo": json.loads(args.ppo),
+            "update_threads": args.update_threads,
+        }
     )
     trainer = Trainer(cfg)
     start = time.perf_counter()

@@ -2,7 +2,10 @@
 
 Every (mask, distance, sin, cos) entity block of the observation (layout of
 :mod:`atdrone.envs.core`) goes through an encoder for its kind (evader, obstacle,
-teammate); evaders and teammates are mean-pooled over the visible ones, so one
+teammate) as (distance, sin, cos) plus a proximity feature exp(-d / proximity), d in
+metres (0.15 m by default): the observation's distance / 5 barely changes between a
+safe 0.15 m and a colliding 0.1 m, and without this feature self-play policies kept
+flying into the obstacle. Evaders and teammates are mean-pooled over the visible ones, so one
 network serves any number of them (4p2e and 4p3e alike). Two hidden layers of 128
 follow. The actor outputs the mean of a Gaussian over the pre-squash action u; the
 action is tanh(u) in [-1, 1]; the log-std is a free parameter. The critic is a
@@ -20,7 +23,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from atdrone.envs.core import ENTITY_FEATURES, PursuitState
+from atdrone.envs.core import DIST_SCALE, ENTITY_FEATURES, PursuitState
 from atdrone.envs.geometry import Geometry
 
 GLOBAL_PURSUER_FEATURES = 4  # x / width, y / height, sin heading, cos heading
@@ -29,12 +32,13 @@ GLOBAL_EVADER_FEATURES = 3  # x / width, y / height, active
 
 @dataclass(frozen=True)
 class NetConfig:
-    """Architecture: entity embedding width, hidden width, initial log-std."""
+    """Architecture: entity embedding width, hidden width, initial log-std, proximity scale (m; 0 = off)."""
 
     entity_dim: int = 64
     hidden: int = 128
     init_log_std: float = -0.5
     centralised_critic: bool = False
+    proximity: float = 0.15
 
 
 def _layer(n_in: int, n_out: int, gain: float = math.sqrt(2)) -> nn.Linear:
@@ -62,20 +66,33 @@ class EntityTrunk(nn.Module):
     def __init__(self, cfg: NetConfig, extra: int = 0) -> None:
         super().__init__()
         d = cfg.entity_dim
-        self.evader = nn.Sequential(_layer(3, d), nn.Tanh())
-        self.obstacle = nn.Sequential(_layer(3, d), nn.Tanh())
-        self.mate = nn.Sequential(_layer(3, d), nn.Tanh())
+        self.proximity = cfg.proximity
+        n_in = 4 if cfg.proximity > 0 else 3
+        self.evader = nn.Sequential(_layer(n_in, d), nn.Tanh())
+        self.obstacle = nn.Sequential(_layer(n_in, d), nn.Tanh())
+        self.mate = nn.Sequential(_layer(n_in, d), nn.Tanh())
         self.body = nn.Sequential(
             _layer(3 * d + 2 + extra, cfg.hidden), nn.Tanh(), _layer(cfg.hidden, cfg.hidden), nn.Tanh()
         )
 
+    def _features(self, block: torch.Tensor) -> torch.Tensor:
+        """(..., 4) [mask, d / 5, sin, cos] -> encoder input (d / 5, sin, cos[, mask * exp(-d / proximity)])."""
+        x = block[..., 1:]
+        if self.proximity > 0:
+            near = torch.exp(-block[..., 1:2] * (DIST_SCALE / self.proximity)) * block[..., :1]
+            x = torch.cat([x, near], -1)
+        return x
+
     def forward(self, obs: torch.Tensor, num_e: int, extra: torch.Tensor | None = None) -> torch.Tensor:
         ev, ob, tm = split_entities(obs, num_e)
-        e = masked_mean(self.evader(ev[..., 1:]), ev[..., 0])
-        t = masked_mean(self.mate(tm[..., 1:]), tm[..., 0])
-        o = self.obstacle(ob[..., 1:])
-        counts = torch.stack([ev[..., 0].mean(-1), tm[..., 0].mean(-1)], -1)  # visible fractions
-        parts = [e, o, t, counts] if extra is None else [e, o, t, counts, extra]
+        parts = [
+            masked_mean(self.evader(self._features(ev)), ev[..., 0]),
+            self.obstacle(self._features(ob)),
+            masked_mean(self.mate(self._features(tm)), tm[..., 0]),
+        ]
+        parts.append(torch.stack([ev[..., 0].mean(-1), tm[..., 0].mean(-1)], -1))  # visible fractions
+        if extra is not None:
+            parts.append(extra)
         return self.body(torch.cat(parts, -1))
 
 
@@ -124,6 +141,14 @@ class ActorCritic(nn.Module):
 
     def architecture(self) -> dict[str, object]:
         return {"class": "ActorCritic", **asdict(self.cfg)}
+
+    def parameter_groups(self) -> tuple[list[nn.Parameter], list[nn.Parameter]]:
+        """(actor parameters, critic parameters), clipped separately by PPO."""
+        critic = {
+            id(p) for m in (self.critic, self.value_head, self.global_encoder) if m is not None for p in m.parameters()
+        }
+        params = list(self.parameters())
+        return [p for p in params if id(p) not in critic], [p for p in params if id(p) in critic]
 
     def dist(self, obs: torch.Tensor, num_e: int) -> torch.distributions.Normal:
         """Gaussian over the pre-squash action u, shape (...)."""

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from atdrone.algos.networks import ActorCritic, squash_log_prob
+from atdrone.algos.networks import ActorCritic, NetConfig, squash_log_prob
 from atdrone.config import ConfigError, parse_document
 
 
@@ -42,6 +42,7 @@ class PPOConfig:
     entity_dim: int = 64
     hidden: int = 128
     init_log_std: float = -0.5
+    proximity: float = 0.15
 
 
 PRESETS: dict[str, PPOConfig] = {
@@ -81,6 +82,17 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
         if not 0 <= getattr(cfg, name) <= 1:
             raise ConfigError(f"{path}.{name}", f"must be in [0, 1], got {getattr(cfg, name)}")
     return cfg
+
+
+def net_config(cfg: PPOConfig, centralised_critic: bool = False) -> NetConfig:
+    """The network architecture a PPO config asks for."""
+    return NetConfig(
+        entity_dim=cfg.entity_dim,
+        hidden=cfg.hidden,
+        init_log_std=cfg.init_log_std,
+        centralised_critic=centralised_critic,
+        proximity=cfg.proximity,
+    )
 
 
 def _as_dict(cfg: PPOConfig) -> dict[str, Any]:
@@ -157,7 +169,8 @@ def ppo_update(
             loss = pg + cfg.vf_coef * vloss - cfg.ent_coef * ent
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+            for params in model.parameter_groups():  # the critic's large gradients must not shrink the actor's
+                nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
             optimizer.step()
             with torch.no_grad():
                 log_ratio = logp - t["logp"][idx]

@@ -21,8 +21,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from atdrone.algos.networks import ActorCritic, NetConfig
-from atdrone.algos.ppo import PPOConfig, learning_rate, ppo_config, ppo_update
+from atdrone.algos.networks import ActorCritic
+from atdrone.algos.ppo import PPOConfig, learning_rate, net_config, ppo_config, ppo_update
 from atdrone.checkpoint import NeuralPolicy, save_checkpoint
 from atdrone.config import CONFIG_DIR, OPTIONAL, ConfigError, check_task_field, load_config, load_task, require_at_least
 from atdrone.evaluation import metrics, run_episodes
@@ -92,12 +92,7 @@ class Trainer:
         self.cfg = cfg
         self.task = load_task(cfg.task)
         self.ppo: PPOConfig = ppo_config(cfg.ppo, cfg.preset)
-        self.net = NetConfig(
-            entity_dim=self.ppo.entity_dim,
-            hidden=self.ppo.hidden,
-            init_log_std=self.ppo.init_log_std,
-            centralised_critic=cfg.mode == "mappo",
-        )
+        self.net = net_config(self.ppo, centralised_critic=cfg.mode == "mappo")
         self.run_dir = Path(cfg.out_dir) / cfg.name
         self.device = pick_device(cfg.device)
         torch.set_num_threads(cfg.torch_threads)

@@ -25,8 +25,7 @@ import numpy as np
 import ray
 
 from atdrone.algos import hola
-from atdrone.algos.networks import NetConfig
-from atdrone.algos.ppo import ppo_config
+from atdrone.algos.ppo import net_config, ppo_config
 from atdrone.config import load_task
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.registry import find_registry_actor, new_member_id
@@ -46,7 +45,7 @@ class Coordinator:
         self.run_dir = Path(run_dir)
         self.task = load_task(cfg.task)
         self.ppo = ppo_config(cfg.ppo, cfg.preset)
-        self.net = NetConfig(entity_dim=self.ppo.entity_dim, hidden=self.ppo.hidden, init_log_std=self.ppo.init_log_std)
+        self.net = net_config(self.ppo)
         # the run's registry actor: passed in (the handle keeps it alive) or found by name
         self.registry = registry if registry is not None else find_registry_actor(registry_name(cfg.name))
         self.num_p = self.task.players.num_p
