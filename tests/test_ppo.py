@@ -209,3 +209,35 @@ def test_seeded_short_self_play_run_improves_its_return(tmp_path):
         returns.append(row.get("train/episode_return", np.nan))
     early, late = np.nanmean(returns[:3]), np.nanmean(returns[-3:])
     assert late > early + 1.0, (early, late)
+
+
+def test_stop_at_suc_stops_at_the_first_evaluation_that_reaches_it(tmp_path):
+    cfg = _tiny(tmp_path, stop_at_suc=50.0, eval_every=1, eval_episodes=1, total_env_steps=100 * 8 * 32)
+    trainer = Trainer(cfg)
+    levels = iter([10.0, 30.0, 60.0, 90.0])
+    trainer.evaluate = lambda episodes, seed=12345: {"SUC": next(levels), "COL": 0.0, "AST": 1.0, "REW": 0.0}
+    last = trainer.train(progress=False)
+    assert last["eval/SUC"] == 60.0 and trainer.updates == 3
+    assert read_header(tmp_path / "tiny" / "last.pt")["step"] == 3 * 8 * 32  # the checkpoint is the stopping one
+    with pytest.raises(ConfigError, match=r"^stop_at_suc"):
+        _tiny(tmp_path, stop_at_suc=120.0)
+
+
+def test_proximity_feature_by_hand():
+    from atdrone.algos.networks import EntityTrunk
+
+    trunk = EntityTrunk(NetConfig(entity_dim=4, hidden=4, proximity=0.15))
+    block = torch.tensor([[1.0, 0.1 / 5.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]])  # visible at 0.1 m; masked
+    feats = trunk._features(block)
+    assert feats.shape == (2, 4)
+    assert feats[0, 3].item() == pytest.approx(math.exp(-0.1 / 0.15))
+    assert feats[1, 3].item() == 0.0  # a masked entity is never "near"
+    assert EntityTrunk(NetConfig(entity_dim=4, hidden=4, proximity=0.0))._features(block).shape == (2, 3)
+
+
+def test_actor_and_critic_parameter_groups_partition_the_model():
+    model = ActorCritic(NetConfig(entity_dim=8, hidden=8, centralised_critic=True))
+    actor, critic = model.parameter_groups()
+    assert {id(p) for p in actor}.isdisjoint(id(p) for p in critic)
+    assert len(actor) + len(critic) == len(list(model.parameters()))
+    assert any(p is model.log_std for p in actor) and any(p is model.value_head.weight for p in critic)

@@ -42,6 +42,8 @@ class TrainConfig:
     update, which runs while the rollout is idle (set both to 1 when sharing the cores).
     init_checkpoint: start from this policy's weights (e.g. a best response fine-tuned
     from a self-play drone); its architecture must match the PPO config's.
+    stop_at_suc: stop once a periodic evaluation reaches this SUC % (0: off), to train a
+    drone of a given skill level (the Zoo 2 drones).
     """
 
     name: str
@@ -62,6 +64,7 @@ class TrainConfig:
     device: str = "auto"
     experiment: str = field(default="", metadata=OPTIONAL)
     init_checkpoint: str = field(default="", metadata=OPTIONAL)
+    stop_at_suc: float = 0.0
 
 
 def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> TrainConfig:
@@ -76,6 +79,8 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     )
     if cfg.max_minutes < 0:
         raise ConfigError("max_minutes", f"must be >= 0, got {cfg.max_minutes}")
+    if not 0 <= cfg.stop_at_suc <= 100:
+        raise ConfigError("stop_at_suc", f"must be a percentage in [0, 100], got {cfg.stop_at_suc}")
     return cfg
 
 
@@ -239,10 +244,13 @@ class Trainer:
             bar.update(self.ppo.num_envs * self.ppo.rollout_steps)
             timed_out = self.cfg.max_minutes and time.perf_counter() - started > self.cfg.max_minutes * 60
             done = self.env_steps >= self.cfg.total_env_steps or timed_out
+            reached = False
             if self.updates % self.cfg.eval_every == 0 or done:
                 last_eval = {f"eval/{k}": v for k, v in self.evaluate(self.cfg.eval_episodes).items()}
                 row.update(last_eval)
                 bar.set_postfix(SUC=f"{last_eval['eval/SUC']:.0f}%", COL=f"{last_eval['eval/COL']:.0f}%")
+                reached = 0 < self.cfg.stop_at_suc <= last_eval["eval/SUC"]
+                done = done or reached
             row.update({"env_steps": self.env_steps, "wall_s": time.perf_counter() - started})
             self.history.append(row)
             if self.tracker is not None:
@@ -250,8 +258,8 @@ class Trainer:
             if self.updates % self.cfg.checkpoint_every == 0 or done:
                 self.save(last_eval)
                 self.write_history()
-            if timed_out:
-                log.info("stopping at max_minutes=%s", self.cfg.max_minutes)
+            if timed_out or reached:
+                log.info("stopping: %s", "max_minutes reached" if timed_out else f"eval SUC >= {self.cfg.stop_at_suc}")
                 break
         bar.close()
         return last_eval
