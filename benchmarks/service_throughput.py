@@ -4,7 +4,7 @@
    (same environments per worker; target >= 1.6x).
 2. Self-play through the service (coordinator + 2 workers + a learner actor) vs the
    single-process trainer with the same total environments (target >= 80 %).
-Usage: python benchmarks/service_throughput.py [--task 4p2e1o] [--updates 6]
+Usage: python benchmarks/service_throughput.py [--task 4p2e1o] [--updates 6] [--rounds 8]
 """
 
 from __future__ import annotations
@@ -17,13 +17,23 @@ import time
 import ray
 
 
-def rollout_rate(workers: list, weights: object, steps: int, rounds: int) -> float:
-    ray.get([w.collect.remote(weights, [], None, 4, steps) for w in workers])  # warm-up
-    start, samples = time.perf_counter(), 0
+def collect_round(workers: list, weights: object, steps: int) -> tuple[int, float]:
+    """(pursuer-steps, seconds) of one collect call on each of ``workers`` at once."""
+    start = time.perf_counter()
+    frags = ray.get([w.collect.remote(weights, [], None, 4, steps) for w in workers])
+    return sum(f.samples for f in frags), time.perf_counter() - start
+
+
+def rollout_scaling(workers: list, weights: object, steps: int, rounds: int) -> tuple[float, float]:
+    """Pursuer-steps/s of 1 and of 2 workers, measured in alternating rounds (drift hits both alike)."""
+    collect_round(workers, weights, steps)  # warm-up: builds both workers' environments
+    totals = {1: [0, 0.0], 2: [0, 0.0]}
     for _ in range(rounds):
-        frags = ray.get([w.collect.remote(weights, [], None, 4, steps) for w in workers])
-        samples += sum(f.samples for f in frags)
-    return samples / (time.perf_counter() - start)
+        for n in (1, 2):
+            samples, seconds = collect_round(workers[:n], weights, steps)
+            totals[n][0] += samples
+            totals[n][1] += seconds
+    return totals[1][0] / totals[1][1], totals[2][0] / totals[2][1]
 
 
 def main() -> None:
@@ -31,6 +41,7 @@ def main() -> None:
     parser.add_argument("--task", default="4p2e1o")
     parser.add_argument("--updates", type=int, default=6)
     parser.add_argument("--envs-per-worker", type=int, default=32)
+    parser.add_argument("--rounds", type=int, default=8, help="alternating 1-worker / 2-worker rollout rounds")
     args = parser.parse_args()
 
     from atdrone.algos.networks import ActorCritic, NetConfig
@@ -43,8 +54,7 @@ def main() -> None:
     task, net = load_task(args.task), NetConfig()
     weights = ray.put(ActorCritic(net).state_dict())
     workers = [RolloutWorkerActor.remote(task, args.envs_per_worker, i, net, 0.99) for i in range(2)]
-    one = rollout_rate(workers[:1], weights, 128, 4)
-    two = rollout_rate(workers, weights, 128, 4)
+    one, two = rollout_scaling(workers, weights, 128, args.rounds)
     for w in workers:
         ray.kill(w)
 
