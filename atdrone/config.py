@@ -365,6 +365,12 @@ def parse_document(schema: Any, document: Any, path: str = "") -> Any:
     return _parse(schema, document, path)
 
 
+def repo_path(path: str | Path) -> Path:
+    """An absolute path as given; a relative one taken from the repository root (beside configs/)."""
+    path = Path(path)
+    return path if path.is_absolute() else CONFIG_DIR.parent / path
+
+
 def read_document(name_or_path: str | Path, kind: str, names: tuple[str, ...] = ()) -> Any:
     """Parse the JSON of configs/<kind>/<name>.json for a known name, else of a path."""
     text = str(name_or_path)

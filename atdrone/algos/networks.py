@@ -5,8 +5,8 @@ Every (mask, distance, sin, cos) entity block of the observation (layout of
 teammate) as (distance, sin, cos) plus a proximity feature exp(-d / proximity), d in
 metres (0.15 m by default): the observation's distance / 5 barely changes between a
 safe 0.15 m and a colliding 0.1 m, and without this feature self-play policies kept
-flying into the obstacle. Evaders and teammates are mean-pooled over the visible ones, so one
-network serves any number of them (4p2e and 4p3e alike). Two hidden layers of 128
+flying into the obstacle. Evaders and teammates are mean-pooled over the visible ones,
+so one network serves any number of them (4p2e and 4p3e alike). Two hidden layers of 128
 follow. The actor outputs the mean of a Gaussian over the pre-squash action u; the
 action is tanh(u) in [-1, 1]; the log-std is a free parameter. The critic is a
 separate network of the same shape. The MAPPO critic adds the global state, pooled

@@ -151,6 +151,7 @@ def ppo_update(
             group["lr"] = lr
     stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
     mb = min(cfg.minibatch_size, n)
+    groups = model.parameter_groups()  # actor and critic: the critic's large gradients must not shrink the actor's
     for _ in range(cfg.epochs):
         order = torch.randperm(n, generator=generator).to(device)
         for start in range(0, n - mb + 1, mb):
@@ -169,7 +170,7 @@ def ppo_update(
             loss = pg + cfg.vf_coef * vloss - cfg.ent_coef * ent
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            for params in model.parameter_groups():  # the critic's large gradients must not shrink the actor's
+            for params in groups:
                 nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
             optimizer.step()
             with torch.no_grad():

@@ -24,7 +24,7 @@ import torch
 from atdrone.algos.networks import ActorCritic
 from atdrone.algos.ppo import PPOConfig, learning_rate, net_config, ppo_config, ppo_update
 from atdrone.checkpoint import NeuralPolicy, save_checkpoint
-from atdrone.config import CONFIG_DIR, OPTIONAL, ConfigError, check_task_field, load_config, load_task, require_at_least
+from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, load_task, repo_path, require_at_least
 from atdrone.evaluation import metrics, run_episodes
 from atdrone.fileio import atomic_write_bytes
 from atdrone.policies.base import Policy
@@ -107,8 +107,8 @@ class Trainer:
             from atdrone.checkpoint import load_checkpoint
 
             path = Path(cfg.init_checkpoint)
-            if not path.is_absolute() and not path.exists():  # repository-relative, like zoo checkpoints
-                path = CONFIG_DIR.parent / path
+            if not path.exists():  # repository-relative, like zoo checkpoints
+                path = repo_path(path)
             start, _ = load_checkpoint(path, expect_task=self.task.name)
             if start.cfg != self.net:
                 raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}")

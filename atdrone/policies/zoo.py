@@ -14,12 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from atdrone.config import CONFIG_DIR, ConfigError, parse_document, read_document
+from atdrone.config import ConfigError, parse_document, read_document, repo_path
 from atdrone.policies.base import Policy
 from atdrone.policies.rules import GreedyPolicy, VicsekPolicy
 
 ZOO_NAMES = ("zoo1", "zoo2", "zoo3")
-REPO_ROOT = CONFIG_DIR.parent
 RULES: dict[str, type] = {"greedy": GreedyPolicy, "vicsek": VicsekPolicy}
 
 
@@ -52,8 +51,7 @@ class ZooSpec:
 
 
 def checkpoint_path(spec: MemberSpec) -> Path:
-    path = Path(spec.checkpoint)
-    return path if path.is_absolute() else REPO_ROOT / path
+    return repo_path(spec.checkpoint)
 
 
 def _validate(spec: ZooSpec) -> None:
