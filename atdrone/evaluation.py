@@ -110,7 +110,12 @@ def run_episodes(
                 for i in idx:
                     members = info["team"]["partner_members"][i]
                     teams[i] = ",".join(match.partner_names[m] for m in members)
-                rec["learner_slots"][idx] = [",".join(map(str, s)) for s in info["team"]["learner_slots"][idx]]
+                slots = info["team"]["learner_slots"][idx]
+                rec["learner_slots"][idx] = [",".join(map(str, s)) for s in slots]
+                hit = info["collided"][idx]  # (n, P) pursuers in this step's collision
+                rec["learner_crashed"][idx] = np.take_along_axis(hit, slots, axis=1).any(1)
+                partner_slots = info["team"]["partner_slots"][idx]
+                rec["partner_crashed"][idx] = np.take_along_axis(hit, partner_slots, axis=1).any(1)
                 finished |= new
                 if on_progress is not None:
                     on_progress(len(idx))
@@ -134,6 +139,8 @@ _FIELDS = {
     "collided": bool,
     "captured": np.int64,
     "learner_slots": object,
+    "learner_crashed": bool,  # a learner drone was in the collision that ended the episode
+    "partner_crashed": bool,  # a partner drone was in it
 }
 
 

@@ -81,6 +81,26 @@ def concat_fragments(fragments: Sequence[Fragment]) -> Fragment:
     )
 
 
+def credited_rewards(
+    rewards: np.ndarray, info: dict[str, Any], collision: float, credit: str, scale: float
+) -> np.ndarray:
+    """Learner rewards (B, k) with the shared collision term re-credited for training.
+
+    The task pays ``collision`` to every pursuer when any pursuer collides. "team"
+    keeps that, times ``scale``; "own" pays ``scale * collision`` only to the learners
+    in a collision (info["collided"] at their slots, info["team"]["learner_slots"]).
+    """
+    collided = info["collided"]  # (B, P)
+    shared = collision * collided.any(-1, keepdims=True)
+    if credit == "team":
+        return (rewards + (scale - 1.0) * shared).astype(np.float32)
+    if credit != "own":
+        raise ValueError(f"collision credit must be 'team' or 'own', got {credit!r}")
+    slots = info["team"]["learner_slots"]
+    own = np.take_along_axis(collided, slots, axis=1)
+    return (rewards - shared + scale * collision * own).astype(np.float32)
+
+
 class RolloutWorker:
     """Collects fragments for the learners of one BatchedPursuit (see the module docstring)."""
 
@@ -94,6 +114,8 @@ class RolloutWorker:
         num_ctrl: int | None = None,
         sampler: PartnerSampler | None = None,
         gamma: float = 0.99,
+        collision_credit: str = "team",
+        collision_scale: float = 1.0,
     ) -> None:
         self.core = BatchedPursuit(task, num_envs=num_envs, seed=seed)
         if num_ctrl is None:
@@ -102,6 +124,8 @@ class RolloutWorker:
         self.model = ActorCritic(net)
         self.model.eval()
         self.gamma = gamma
+        self.collision_credit = collision_credit
+        self.collision_scale = collision_scale
         self.generator = torch.Generator().manual_seed(seed + 2)
         self.obs = self.match.reset(seed=seed)
         self.num_e = self.core.num_e
@@ -145,6 +169,10 @@ class RolloutWorker:
             v = self._values(self.obs, state)
             t1 = time.perf_counter()
             next_obs, r, d, info = self.match.step(torch.tanh(ut).numpy())
+            if self.collision_credit != "team" or self.collision_scale != 1.0:
+                r = credited_rewards(
+                    r, info, self.core.cfg.task.reward.collision, self.collision_credit, self.collision_scale
+                )
             t2 = time.perf_counter()
             obs[t], u[t], logp[t], values[t], rewards[t], dones[t] = self.obs, ut.numpy(), lp.numpy(), v, r, d
             if states is not None:

@@ -15,6 +15,7 @@ from atdrone.checkpoint import CheckpointError, load_checkpoint, load_policy, re
 from atdrone.config import ConfigError
 from atdrone.envs import BatchedPursuit
 from atdrone.policies.base import DroneBatch
+from atdrone.rollout import credited_rewards
 
 
 def gae_loop(rewards, values, dones, last_values, gamma, lam):
@@ -241,3 +242,28 @@ def test_actor_and_critic_parameter_groups_partition_the_model():
     assert {id(p) for p in actor}.isdisjoint(id(p) for p in critic)
     assert len(actor) + len(critic) == len(list(model.parameters()))
     assert any(p is model.log_std for p in actor) and any(p is model.value_head.weight for p in critic)
+
+
+def test_collision_credit_by_hand():
+    # Two envs, four pursuers, learners in slots (2, 0) and (1, 3).
+    # Env 0: pursuer 2 (a learner) and pursuer 3 (a partner) collided.
+    # Env 1: only pursuer 2 (a partner) hit the bar.
+    collided = np.array([[False, False, True, True], [False, False, True, False]])
+    info = {"collided": collided, "team": {"learner_slots": np.array([[2, 0], [1, 3]])}}
+    shared = np.array([[-10 + 1.5, -10 + 1.5], [-10 + 0.5, -10 + 0.5]], dtype=np.float32)  # task reward, both columns
+    own = credited_rewards(shared, info, collision=-10.0, credit="own", scale=1.0)
+    np.testing.assert_allclose(own, [[-8.5, 1.5], [0.5, 0.5]])
+    own3 = credited_rewards(shared, info, collision=-10.0, credit="own", scale=3.0)
+    np.testing.assert_allclose(own3, [[-28.5, 1.5], [0.5, 0.5]])
+    team2 = credited_rewards(shared, info, collision=-10.0, credit="team", scale=2.0)
+    np.testing.assert_allclose(team2, [[-18.5, -18.5], [-19.5, -19.5]])
+    with pytest.raises(ValueError, match="credit"):
+        credited_rewards(shared, info, collision=-10.0, credit="blame", scale=1.0)
+
+
+def test_ppo_config_checks_collision_credit():
+    assert ppo_config({"collision_credit": "own"}).collision_credit == "own"
+    with pytest.raises(ConfigError, match="collision_credit"):
+        ppo_config({"collision_credit": "blame"})
+    with pytest.raises(ConfigError, match="collision_scale"):
+        ppo_config({"collision_scale": -1.0})

@@ -421,3 +421,17 @@ def test_render_shows_a_policy_playing_with_zoo_partners(tmp_path, capsys):
     rc = main([*args, "--out", str(tmp_path / "team.gif")])
     assert rc == 0 and (tmp_path / "team.gif").is_file()
     assert "team: learners in slots" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("straight_learners", [True, False])
+def test_records_name_whether_learners_or_partners_crashed(straight_learners):
+    # Turning 45 degrees a step, a drone circles on the spot; flying straight (+y, the
+    # start heading) at 0.03 m a step, it meets the far wall after more than 30 steps.
+    # Earlier endings are a straight flyer clipping a circling neighbour: both crashed.
+    learner, partner = (Constant("straight", 0.0), Constant("circling", 1.0))[:: 1 if straight_learners else -1]
+    records = run_episodes(learner, "4p2e1o", [partner], 24, seed=2)
+    assert (records["outcome"] == "collision").all()
+    straight, circling = ("learner", "partner") if straight_learners else ("partner", "learner")
+    assert records[f"{straight}_crashed"].all()
+    assert (records[f"{circling}_crashed"] == (records["length"] < 30)).all()
+    assert (records["length"] >= 30).sum() >= 12  # most episodes end at the wall

@@ -24,6 +24,9 @@ class PPOConfig:
 
     num_envs x rollout_steps environment steps per update (each gives one sample per
     learner drone); epochs passes over them in minibatches of minibatch_size samples.
+    collision_credit "team" trains on the task's shared reward; "own" hands the
+    collision term only to the learners that collided, times collision_scale (a
+    training signal: evaluation always reports the task's own reward).
     """
 
     num_envs: int = 64
@@ -43,6 +46,8 @@ class PPOConfig:
     hidden: int = 128
     init_log_std: float = -0.5
     proximity: float = 0.15
+    collision_credit: Literal["team", "own"] = "team"
+    collision_scale: float = 1.0
 
 
 PRESETS: dict[str, PPOConfig] = {
@@ -78,6 +83,10 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
     for name in ("lr", "clip", "max_grad_norm"):
         if getattr(cfg, name) <= 0:
             raise ConfigError(f"{path}.{name}", f"must be > 0, got {getattr(cfg, name)}")
+    if cfg.collision_credit not in ("team", "own"):
+        raise ConfigError(f"{path}.collision_credit", f"must be 'team' or 'own', got {cfg.collision_credit!r}")
+    if cfg.collision_scale < 0:
+        raise ConfigError(f"{path}.collision_scale", f"must be >= 0, got {cfg.collision_scale}")
     for name in ("gamma", "gae_lambda"):
         if not 0 <= getattr(cfg, name) <= 1:
             raise ConfigError(f"{path}.{name}", f"must be in [0, 1], got {getattr(cfg, name)}")

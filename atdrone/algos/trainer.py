@@ -117,7 +117,14 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.partners: list[Policy] = load_zoo(cfg.zoo).policies() if cfg.mode == "best_response" else []
         self.worker = RolloutWorker(
-            self.task, self.ppo.num_envs, cfg.seed, self.net, partners=self.partners, gamma=self.ppo.gamma
+            self.task,
+            self.ppo.num_envs,
+            cfg.seed,
+            self.net,
+            partners=self.partners,
+            gamma=self.ppo.gamma,
+            collision_credit=self.ppo.collision_credit,
+            collision_scale=self.ppo.collision_scale,
         )
         self.tracker = tracker
         self.env_steps = 0
