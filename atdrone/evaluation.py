@@ -67,6 +67,14 @@ def metrics(records: pd.DataFrame) -> dict[str, float]:
     }
 
 
+def crash_shares(records: pd.DataFrame) -> dict[str, float]:
+    """% of episodes ended by a collision with a learner in it, and by partners alone."""
+    ended = (records["outcome"] == "collision").to_numpy(bool)
+    learner = records["learner_crashed"].to_numpy(bool) & ended
+    partner_only = records["partner_crashed"].to_numpy(bool) & ended & ~learner
+    return {"learner_crash": 100.0 * learner.mean(), "partner_only_crash": 100.0 * partner_only.mean()}
+
+
 def run_episodes(
     learner: Policy,
     task: TaskConfig | str,

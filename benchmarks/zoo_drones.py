@@ -3,8 +3,11 @@
 For each self-play drone (configs/zoos/checkpoints/*.pt): its self-play metrics (the
 drone in every pursuer slot, the number the zoo's skill levels refer to: about 70 % and
 54 % SUC) and its metrics as the learner with each zoo's partners, on the task it was
-trained on. Optionally compares a best response (--br PATH) with self-play on a zoo.
+trained on. Optionally compares a best response (--br PATH) with self-play policies
+(--sp PATH ..., default sp_high) on a zoo (--br-zoo), with the standard error of SUC
+and the share of episodes ended by a learner's collision or by the partners alone.
 Usage: python benchmarks/zoo_drones.py [--episodes 500] [--seeds 0] [--br runs/br_zoo1/last.pt]
+       python benchmarks/zoo_drones.py --only-br --br BR.pt --sp SP.pt --episodes 1000 --seeds 0 1
 """
 
 from __future__ import annotations
@@ -23,12 +26,14 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--zoos", nargs="+", default=["zoo1", "zoo2", "zoo3"])
-    parser.add_argument("--br", default=None, help="a best-response checkpoint to compare with sp_high")
+    parser.add_argument("--br", default=None, help="a best-response checkpoint to compare with --sp")
     parser.add_argument("--br-zoo", default="zoo1")
+    parser.add_argument("--sp", nargs="+", default=[str(CHECKPOINTS / "sp_high.pt")], help="self-play checkpoints")
+    parser.add_argument("--only-br", action="store_true", help="skip the zoo drones, compare --br and --sp only")
     args = parser.parse_args()
 
     from atdrone.checkpoint import load_policy, read_header
-    from atdrone.evaluation import METRICS, evaluate, metrics, run_episodes
+    from atdrone.evaluation import METRICS, crash_shares, evaluate, metrics, run_episodes
 
     def self_play(path: Path) -> dict[str, float]:
         policy = load_policy(path)
@@ -36,7 +41,7 @@ def main() -> None:
         return {m: float(np.mean([p[m] for p in per_seed])) for m in METRICS}
 
     out: dict[str, object] = {"benchmark": "zoo_drones", "episodes": args.episodes, "seeds": args.seeds}
-    for path in sorted(CHECKPOINTS.glob("*.pt")):
+    for path in [] if args.only_br else sorted(CHECKPOINTS.glob("*.pt")):
         header = read_header(path)
         task = header["task"]
         entry: dict[str, object] = {"task": task, "seed": header["seed"], "env_steps": header["step"]}
@@ -46,15 +51,16 @@ def main() -> None:
         out[path.stem] = entry
         print(json.dumps({path.stem: entry}), flush=True)
     if args.br:
-        br = Path(args.br)
-        task = read_header(br)["task"]
-        out["best_response"] = {
-            "zoo": args.br_zoo,
-            "br": evaluate(load_policy(br), task, args.br_zoo, episodes=args.episodes, seeds=args.seeds).mean,
-            "sp_high": evaluate(
-                load_policy(CHECKPOINTS / "sp_high.pt"), task, args.br_zoo, episodes=args.episodes, seeds=args.seeds
-            ).mean,
-        }
+        task = read_header(args.br)["task"]
+
+        def on_zoo(path: str) -> dict[str, object]:
+            result = evaluate(load_policy(path), task, args.br_zoo, episodes=args.episodes, seeds=args.seeds)
+            suc = result.records["success"].to_numpy(float)
+            se = 100.0 * float(np.sqrt(suc.mean() * (1 - suc.mean()) / len(suc)))
+            return {**result.mean, "SUC_se": se, **crash_shares(result.records), "checkpoint": path}
+
+        out["best_response"] = {"task": task, "zoo": args.br_zoo, "br": on_zoo(args.br)}
+        out["best_response"]["self_play"] = [on_zoo(p) for p in args.sp]
     print(json.dumps(out, indent=2))
 
 

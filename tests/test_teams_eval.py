@@ -20,7 +20,7 @@ from atdrone.envs import BatchedPursuit
 from atdrone.envs.core import CAPTURED
 from atdrone.envs.gym import AdaptiveTeamingEnv
 from atdrone.envs.render import record_episode
-from atdrone.evaluation import METRICS, GridCell, evaluate, evaluate_grid, metrics, run_episodes
+from atdrone.evaluation import METRICS, GridCell, crash_shares, evaluate, evaluate_grid, metrics, run_episodes
 from atdrone.policies import DroneBatch, GreedyPolicy, StatelessPolicy, VicsekPolicy
 from atdrone.policies.zoo import ZOO_NAMES, ZooError, checkpoint_path, load_zoo
 from atdrone.reports import format_table
@@ -435,3 +435,9 @@ def test_records_name_whether_learners_or_partners_crashed(straight_learners):
     assert records[f"{straight}_crashed"].all()
     assert (records[f"{circling}_crashed"] == (records["length"] < 30)).all()
     assert (records["length"] >= 30).sum() >= 12  # most episodes end at the wall
+    shares = crash_shares(records)
+    wall_only = 100.0 * (records["length"] >= 30).mean()
+    if straight_learners:
+        assert shares == {"learner_crash": 100.0, "partner_only_crash": 0.0}
+    else:
+        assert shares == pytest.approx({"learner_crash": 100.0 - wall_only, "partner_only_crash": wall_only})
