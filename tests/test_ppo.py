@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from atdrone.algos.networks import ActorCritic, NetConfig, action_log_prob, squash_log_prob
+from atdrone.algos.networks import ActorCritic, NetConfig, action_log_prob, global_state, squash_log_prob
 from atdrone.algos.ppo import gae, ppo_config
 from atdrone.algos.trainer import Trainer, load_train_config
 from atdrone.checkpoint import CheckpointError, load_checkpoint, load_policy, read_header, save_checkpoint
@@ -267,3 +267,36 @@ def test_ppo_config_checks_collision_credit():
         ppo_config({"collision_credit": "blame"})
     with pytest.raises(ConfigError, match="collision_scale"):
         ppo_config({"collision_scale": -1.0})
+
+
+def test_widening_into_a_centralised_critic_keeps_actions_and_values():
+    small = _trained_model()
+    wide = ActorCritic(NetConfig(entity_dim=16, hidden=32, centralised_critic=True))
+    wide.widen_from(small)
+    core = BatchedPursuit("4p2e1o", num_envs=6, seed=3)
+    obs = torch.from_numpy(core.reset())
+    state = torch.from_numpy(global_state(core.state, core.geometry, 4))[:, None].expand(6, 4, -1)
+    torch.testing.assert_close(wide.dist(obs, 2).mean, small.dist(obs, 2).mean)
+    torch.testing.assert_close(wide.value(obs, 2, state, 4), small.value(obs, 2))
+    # the global inputs start at zero weight and learn from there
+    wide.value(obs, 2, state, 4).sum().backward()
+    assert wide.global_encoder is not None
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in wide.critic.body[0].parameters())
+    with pytest.raises(ValueError, match="decentralised"):
+        small.widen_from(wide)
+    with pytest.raises(ValueError, match="does not match"):
+        ActorCritic(NetConfig(entity_dim=8, hidden=32, centralised_critic=True)).widen_from(small)
+
+
+def test_best_response_with_a_centralised_critic_starts_from_a_self_play_checkpoint(tmp_path):
+    sp = Trainer(_tiny(tmp_path, name="sp", total_env_steps=2048))
+    sp.update_once()
+    path = sp.save()
+    br = Trainer(
+        _tiny(tmp_path, name="br", mode="best_response", zoo="zoo1", init_checkpoint=str(path), centralised_critic=True)
+    )
+    assert br.model.global_encoder is not None
+    obs = torch.from_numpy(br.worker.obs)
+    torch.testing.assert_close(br.model.dist(obs, 2).mean, sp.model.dist(obs, 2).mean)
+    stats = br.update_once()
+    assert np.isfinite(stats["train/value_loss"])

@@ -16,7 +16,7 @@ the same way (pursuers and evaders in absolute arena coordinates).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -141,6 +141,27 @@ class ActorCritic(nn.Module):
 
     def architecture(self) -> dict[str, object]:
         return {"class": "ActorCritic", **asdict(self.cfg)}
+
+    def widen_from(self, other: ActorCritic) -> None:
+        """Take a decentralised-critic model's weights into this centralised-critic one.
+
+        Every parameter is copied; the critic's first layer gets zero weights on the
+        global-state inputs, so actions and values start exactly as ``other``'s and the
+        critic learns to use the global state from there.
+        """
+        if other.global_encoder is not None or self.global_encoder is None:
+            raise ValueError("widen_from takes a decentralised critic into a centralised one")
+        if replace(other.cfg, centralised_critic=True) != self.cfg:
+            raise ValueError(f"architecture {other.cfg} does not match {self.cfg} beyond the critic")
+        own = self.state_dict()
+        for name, value in other.state_dict().items():
+            if own[name].shape == value.shape:
+                own[name] = value.clone()
+            else:  # critic.body.0.weight: (hidden, inputs + global features), the global ones last
+                wide = torch.zeros_like(own[name])
+                wide[:, : value.shape[1]] = value
+                own[name] = wide
+        self.load_state_dict(own)
 
     def parameter_groups(self) -> tuple[list[nn.Parameter], list[nn.Parameter]]:
         """(actor parameters, critic parameters), clipped separately by PPO."""

@@ -41,7 +41,10 @@ class TrainConfig:
     torch_threads: torch threads of the rollout (inference); update_threads: of the PPO
     update, which runs while the rollout is idle (set both to 1 when sharing the cores).
     init_checkpoint: start from this policy's weights (e.g. a best response fine-tuned
-    from a self-play drone); its architecture must match the PPO config's.
+    from a self-play drone); its architecture must match the PPO config's, except that
+    a decentralised critic may be widened into a centralised one.
+    centralised_critic: give a best_response learner MAPPO's critic over the global
+    state (mode mappo always has one); the actor still sees only its own observation.
     stop_at_suc: stop once a periodic evaluation reaches this SUC % (0: off), to train a
     drone of a given skill level (the Zoo 2 drones).
     """
@@ -65,6 +68,7 @@ class TrainConfig:
     experiment: str = field(default="", metadata=OPTIONAL)
     init_checkpoint: str = field(default="", metadata=OPTIONAL)
     stop_at_suc: float = 0.0
+    centralised_critic: bool = False
 
 
 def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> TrainConfig:
@@ -97,7 +101,7 @@ class Trainer:
         self.cfg = cfg
         self.task = load_task(cfg.task)
         self.ppo: PPOConfig = ppo_config(cfg.ppo, cfg.preset)
-        self.net = net_config(self.ppo, centralised_critic=cfg.mode == "mappo")
+        self.net = net_config(self.ppo, centralised_critic=cfg.mode == "mappo" or cfg.centralised_critic)
         self.run_dir = Path(cfg.out_dir) / cfg.name
         self.device = pick_device(cfg.device)
         torch.set_num_threads(cfg.torch_threads)
@@ -110,9 +114,15 @@ class Trainer:
             if not path.exists():  # repository-relative, like zoo checkpoints
                 path = repo_path(path)
             start, _ = load_checkpoint(path, expect_task=self.task.name)
-            if start.cfg != self.net:
+            if start.cfg == self.net:
+                self.model.load_state_dict(start.state_dict())
+            elif self.net.centralised_critic and not start.cfg.centralised_critic:
+                try:
+                    self.model.widen_from(start.to(self.device))
+                except ValueError as err:
+                    raise ConfigError("init_checkpoint", str(err)) from None
+            else:
                 raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}")
-            self.model.load_state_dict(start.state_dict())
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.ppo.lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.partners: list[Policy] = load_zoo(cfg.zoo).policies() if cfg.mode == "best_response" else []
