@@ -300,3 +300,15 @@ def test_best_response_with_a_centralised_critic_starts_from_a_self_play_checkpo
     torch.testing.assert_close(br.model.dist(obs, 2).mean, sp.model.dist(obs, 2).mean)
     stats = br.update_once()
     assert np.isfinite(stats["train/value_loss"])
+
+
+def test_start_std_overrides_the_initial_checkpoints_noise(tmp_path):
+    sp = Trainer(_tiny(tmp_path, name="sp"))
+    path = sp.save()
+    kept = Trainer(_tiny(tmp_path, name="kept", init_checkpoint=str(path)))
+    assert kept.model.log_std.item() == pytest.approx(sp.model.log_std.item())
+    quiet = Trainer(_tiny(tmp_path, name="quiet", init_checkpoint=str(path), start_std=0.2))
+    assert quiet.model.log_std.item() == pytest.approx(math.log(0.2))
+    torch.testing.assert_close(quiet.model.mu.weight, sp.model.mu.weight)  # only the noise changed
+    with pytest.raises(ConfigError, match="start_std"):
+        _tiny(tmp_path, start_std=-0.1)

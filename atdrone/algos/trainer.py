@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -43,6 +44,9 @@ class TrainConfig:
     init_checkpoint: start from this policy's weights (e.g. a best response fine-tuned
     from a self-play drone); its architecture must match the PPO config's, except that
     a decentralised critic may be widened into a centralised one.
+    start_std: start from this exploration noise (the Gaussian's std in pre-squash
+    units), overriding the initial checkpoint's (0: keep it). A fine-tune at low noise
+    optimises what a deterministic evaluation plays.
     centralised_critic: give a best_response learner MAPPO's critic over the global
     state (mode mappo always has one); the actor still sees only its own observation.
     stop_at_suc: stop once a periodic evaluation reaches this SUC % (0: off), to train a
@@ -69,6 +73,7 @@ class TrainConfig:
     init_checkpoint: str = field(default="", metadata=OPTIONAL)
     stop_at_suc: float = 0.0
     centralised_critic: bool = False
+    start_std: float = 0.0
 
 
 def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> TrainConfig:
@@ -83,6 +88,8 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     )
     if cfg.max_minutes < 0:
         raise ConfigError("max_minutes", f"must be >= 0, got {cfg.max_minutes}")
+    if cfg.start_std < 0:
+        raise ConfigError("start_std", f"must be >= 0, got {cfg.start_std}")
     if not 0 <= cfg.stop_at_suc <= 100:
         raise ConfigError("stop_at_suc", f"must be a percentage in [0, 100], got {cfg.stop_at_suc}")
     return cfg
@@ -123,6 +130,9 @@ class Trainer:
                     raise ConfigError("init_checkpoint", str(err)) from None
             else:
                 raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}")
+        if cfg.start_std > 0:
+            with torch.no_grad():
+                self.model.log_std.fill_(math.log(cfg.start_std))
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.ppo.lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.partners: list[Policy] = load_zoo(cfg.zoo).policies() if cfg.mode == "best_response" else []
