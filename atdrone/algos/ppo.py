@@ -83,8 +83,6 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
     for name in ("lr", "clip", "max_grad_norm"):
         if getattr(cfg, name) <= 0:
             raise ConfigError(f"{path}.{name}", f"must be > 0, got {getattr(cfg, name)}")
-    if cfg.collision_credit not in ("team", "own"):
-        raise ConfigError(f"{path}.collision_credit", f"must be 'team' or 'own', got {cfg.collision_credit!r}")
     if cfg.collision_scale < 0:
         raise ConfigError(f"{path}.collision_scale", f"must be >= 0, got {cfg.collision_scale}")
     for name in ("gamma", "gae_lambda"):

@@ -121,15 +121,13 @@ class Trainer:
             if not path.exists():  # repository-relative, like zoo checkpoints
                 path = repo_path(path)
             start, _ = load_checkpoint(path, expect_task=self.task.name)
-            if start.cfg == self.net:
-                self.model.load_state_dict(start.state_dict())
-            elif self.net.centralised_critic and not start.cfg.centralised_critic:
-                try:
-                    self.model.widen_from(start.to(self.device))
-                except ValueError as err:
-                    raise ConfigError("init_checkpoint", str(err)) from None
-            else:
-                raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}")
+            try:
+                if start.cfg == self.net:
+                    self.model.load_state_dict(start.state_dict())
+                else:
+                    self.model.widen_from(start)  # a decentralised critic into a centralised one, else ValueError
+            except ValueError:
+                raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}") from None
         if cfg.start_std > 0:
             with torch.no_grad():
                 self.model.log_std.fill_(math.log(cfg.start_std))
