@@ -1,7 +1,8 @@
 """Rollout collection on the batched simulator: learners (a torch actor) + partners.
 
 A :class:`RolloutWorker` owns a BatchedPursuit and a Match that fills the learner
-slots with the current network and the rest with partner policies. ``collect``
+slots with the current network and the rest with partner policies (and keeps the
+learners' past frames when the network reads them). ``collect``
 returns a :class:`Fragment` of plain arrays (no torch objects), so fragments can
 travel between processes; weights come in as a state_dict.
 """
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from atdrone.algos.history import ObsHistory, input_dim
 from atdrone.algos.networks import ActorCritic, NetConfig, global_state, squash_log_prob
 from atdrone.algos.ppo import gae
 from atdrone.config import TaskConfig
@@ -28,7 +30,7 @@ from atdrone.teams import Match, PartnerSampler
 class Fragment:
     """T steps of B environments with k learner drones each (arrays, time-major)."""
 
-    obs: np.ndarray  # (T, B, k, D) float32
+    obs: np.ndarray  # (T, B, k, D) float32 network inputs (with past frames when the network reads them)
     u: np.ndarray  # (T, B, k) pre-squash actions
     logp: np.ndarray  # (T, B, k)
     values: np.ndarray  # (T, B, k)
@@ -129,6 +131,19 @@ class RolloutWorker:
         self.generator = torch.Generator().manual_seed(seed + 2)
         self.obs = self.match.reset(seed=seed)
         self.num_e = self.core.num_e
+        B, k = self.obs.shape[:2]
+        self._rows = np.repeat(np.arange(B), k)
+        self._keys = np.tile(np.arange(k), B)
+        self.memory = ObsHistory(net.history, B, k, self.core.obs_dim) if net.history else None
+
+    def _inputs(self, obs: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Network inputs (n, k, input_dim) of learner observations (n, k, D) of envs ``rows`` (default all)."""
+        if self.memory is None:
+            return obs
+        n, k, D = obs.shape
+        env = self._rows if rows is None else np.repeat(rows, k)
+        key = self._keys[: n * k]
+        return self.memory.augment(obs.reshape(n * k, D), env, key).reshape(n, k, -1)
 
     def set_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
         self.model.load_state_dict(state_dict)
@@ -149,7 +164,7 @@ class RolloutWorker:
     def collect(self, steps: int) -> Fragment:
         """Step every environment ``steps`` times with the current weights."""
         B, k, D = self.obs.shape
-        obs = np.empty((steps, B, k, D), np.float32)
+        obs = np.empty((steps, B, k, input_dim(D, self.model.cfg.history)), np.float32)
         u = np.empty((steps, B, k), np.float32)
         logp = np.empty((steps, B, k), np.float32)
         values = np.empty((steps, B, k), np.float32)
@@ -162,19 +177,22 @@ class RolloutWorker:
         states = np.empty((steps, B, state.shape[-1]), np.float32) if state is not None else None
         for t in range(steps):
             t0 = time.perf_counter()
-            x = torch.from_numpy(self.obs)
-            dist = self.model.dist(x, self.num_e)
+            inputs = self._inputs(self.obs)
+            dist = self.model.dist(torch.from_numpy(inputs), self.num_e)
             ut = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=self.generator)
             lp = squash_log_prob(dist, ut)
-            v = self._values(self.obs, state)
+            v = self._values(inputs, state)
+            actions = torch.tanh(ut).numpy()
             t1 = time.perf_counter()
-            next_obs, r, d, info = self.match.step(torch.tanh(ut).numpy())
+            next_obs, r, d, info = self.match.step(actions)
             if self.collision_credit != "team" or self.collision_scale != 1.0:
                 r = credited_rewards(
                     r, info, self.core.cfg.task.reward.collision, self.collision_credit, self.collision_scale
                 )
             t2 = time.perf_counter()
-            obs[t], u[t], logp[t], values[t], rewards[t], dones[t] = self.obs, ut.numpy(), lp.numpy(), v, r, d
+            obs[t], u[t], logp[t], values[t], rewards[t], dones[t] = inputs, ut.numpy(), lp.numpy(), v, r, d
+            if self.memory is not None:
+                self.memory.record(self.obs.reshape(B * k, D), self._rows, self._keys, actions.reshape(-1))
             if states is not None:
                 states[t] = state
             if d.any():
@@ -185,7 +203,8 @@ class RolloutWorker:
                     if central:
                         assert self.core.final_state is not None  # set by the core at every episode end
                         fs = global_state(self.core.final_state, self.core.geometry, self.core.num_p)[timeout]
-                    rewards[t, timeout] += self.gamma * self._values(info["final_obs"][timeout], fs)
+                    final = self._inputs(info["final_obs"][timeout], timeout)
+                    rewards[t, timeout] += self.gamma * self._values(final, fs)
                 for i in idx:
                     episodes.append(
                         {
@@ -195,12 +214,14 @@ class RolloutWorker:
                             "collided": bool(info["episode_collided"][i]),
                         }
                     )
+                if self.memory is not None:
+                    self.memory.reset(d)
             self.obs = next_obs
             state = self._state()
             t3 = time.perf_counter()
             t_inf += (t1 - t0) + (t3 - t2)
             t_sim += t2 - t1
-        last = self._values(self.obs, state)
+        last = self._values(self._inputs(self.obs), state)
         return Fragment(
             obs=obs,
             u=u,

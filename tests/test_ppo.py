@@ -282,7 +282,7 @@ def test_widening_into_a_centralised_critic_keeps_actions_and_values():
     wide.value(obs, 2, state, 4).sum().backward()
     assert wide.global_encoder is not None
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in wide.critic.body[0].parameters())
-    with pytest.raises(ValueError, match="decentralised"):
+    with pytest.raises(ValueError, match="centralised critic"):
         small.widen_from(wide)
     with pytest.raises(ValueError, match="does not match"):
         ActorCritic(NetConfig(entity_dim=8, hidden=32, centralised_critic=True)).widen_from(small)

@@ -11,6 +11,12 @@ follow. The actor outputs the mean of a Gaussian over the pre-squash action u; t
 action is tanh(u) in [-1, 1]; the log-std is a free parameter. The critic is a
 separate network of the same shape. The MAPPO critic adds the global state, pooled
 the same way (pursuers and evaders in absolute arena coordinates).
+
+With ``history`` h > 0 (:mod:`atdrone.algos.history`) the input also holds the drone's
+last h observations and actions: each entity's encoder then reads its features in
+every frame (past ones times their mask, plus the mask), so it can see how the entity
+moved, and the hidden layers read the past actions. New inputs always come last, so
+:meth:`ActorCritic.widen_from` can start a wider network from a narrower one.
 """
 
 from __future__ import annotations
@@ -32,13 +38,15 @@ GLOBAL_EVADER_FEATURES = 3  # x / width, y / height, active
 
 @dataclass(frozen=True)
 class NetConfig:
-    """Architecture: entity embedding width, hidden width, initial log-std, proximity scale (m; 0 = off)."""
+    """Architecture: entity embedding width, hidden width, initial log-std, proximity scale (m; 0 = off),
+    past frames read (history)."""
 
     entity_dim: int = 64
     hidden: int = 128
     init_log_std: float = -0.5
     centralised_critic: bool = False
     proximity: float = 0.15
+    history: int = 0
 
 
 def _layer(n_in: int, n_out: int, gain: float = math.sqrt(2)) -> nn.Linear:
@@ -67,12 +75,14 @@ class EntityTrunk(nn.Module):
         super().__init__()
         d = cfg.entity_dim
         self.proximity = cfg.proximity
-        n_in = 4 if cfg.proximity > 0 else 3
+        self.history = cfg.history
+        per_frame = 4 if cfg.proximity > 0 else 3
+        n_in = per_frame + cfg.history * (per_frame + 1)
         self.evader = nn.Sequential(_layer(n_in, d), nn.Tanh())
         self.obstacle = nn.Sequential(_layer(n_in, d), nn.Tanh())
         self.mate = nn.Sequential(_layer(n_in, d), nn.Tanh())
         self.body = nn.Sequential(
-            _layer(3 * d + 2 + extra, cfg.hidden), nn.Tanh(), _layer(cfg.hidden, cfg.hidden), nn.Tanh()
+            _layer(3 * d + 2 + extra + cfg.history, cfg.hidden), nn.Tanh(), _layer(cfg.hidden, cfg.hidden), nn.Tanh()
         )
 
     def _features(self, block: torch.Tensor) -> torch.Tensor:
@@ -83,16 +93,37 @@ class EntityTrunk(nn.Module):
             x = torch.cat([x, near], -1)
         return x
 
+    def _with_past(self, block: torch.Tensor, past: torch.Tensor | None) -> torch.Tensor:
+        """Encoder input of entity blocks (..., [M,] 4), past ones (h, ..., [M,] 4) appended per frame."""
+        x = self._features(block)
+        if past is None:
+            return x
+        frames = [x]
+        for p in past:
+            frames += [self._features(p) * p[..., :1], p[..., :1]]
+        return torch.cat(frames, -1)
+
     def forward(self, obs: torch.Tensor, num_e: int, extra: torch.Tensor | None = None) -> torch.Tensor:
+        h = self.history
+        past_acts = None
+        past: tuple[torch.Tensor | None, ...] = (None, None, None)
+        if h:
+            D = (obs.shape[-1] - h) // (h + 1)
+            frames = obs[..., D : D * (h + 1)].reshape(*obs.shape[:-1], h, D)
+            past = tuple(p.movedim(obs.dim() - 1, 0) for p in split_entities(frames, num_e))  # frame axis first
+            past_acts = obs[..., D * (h + 1) :]
+            obs = obs[..., :D]
         ev, ob, tm = split_entities(obs, num_e)
         parts = [
-            masked_mean(self.evader(self._features(ev)), ev[..., 0]),
-            self.obstacle(self._features(ob)),
-            masked_mean(self.mate(self._features(tm)), tm[..., 0]),
+            masked_mean(self.evader(self._with_past(ev, past[0])), ev[..., 0]),
+            self.obstacle(self._with_past(ob, past[1])),
+            masked_mean(self.mate(self._with_past(tm, past[2])), tm[..., 0]),
         ]
         parts.append(torch.stack([ev[..., 0].mean(-1), tm[..., 0].mean(-1)], -1))  # visible fractions
         if extra is not None:
             parts.append(extra)
+        if past_acts is not None:
+            parts.append(past_acts)
         return self.body(torch.cat(parts, -1))
 
 
@@ -143,21 +174,24 @@ class ActorCritic(nn.Module):
         return {"class": "ActorCritic", **asdict(self.cfg)}
 
     def widen_from(self, other: ActorCritic) -> None:
-        """Take a decentralised-critic model's weights into this centralised-critic one.
+        """Take a narrower model's weights: a decentralised critic, fewer past frames.
 
-        Every parameter is copied; the critic's first layer gets zero weights on the
-        global-state inputs, so actions and values start exactly as ``other``'s and the
-        critic learns to use the global state from there.
+        Every parameter is copied; where this model has more inputs (the global state
+        of a centralised critic, past frames and actions) they come last and get zero
+        weights, so actions and values start exactly as ``other``'s and the new inputs
+        are learned from there.
         """
-        if other.global_encoder is not None or self.global_encoder is None:
-            raise ValueError("widen_from takes a decentralised critic into a centralised one")
-        if replace(other.cfg, centralised_critic=True) != self.cfg:
-            raise ValueError(f"architecture {other.cfg} does not match {self.cfg} beyond the critic")
+        if other.global_encoder is not None and self.global_encoder is None:
+            raise ValueError("widen_from cannot drop a centralised critic")
+        if other.cfg.history > self.cfg.history:
+            raise ValueError(f"widen_from cannot drop past frames ({other.cfg.history} > {self.cfg.history})")
+        if replace(other.cfg, centralised_critic=self.cfg.centralised_critic, history=self.cfg.history) != self.cfg:
+            raise ValueError(f"architecture {other.cfg} does not match {self.cfg} beyond the critic and history")
         own = self.state_dict()
         for name, value in other.state_dict().items():
             if own[name].shape == value.shape:
                 own[name] = value.clone()
-            else:  # critic.body.0.weight: (hidden, inputs + global features), the global ones last
+            else:  # a first layer (out, inputs): the old inputs lead, the new ones are zero
                 wide = torch.zeros_like(own[name])
                 wide[:, : value.shape[1]] = value
                 own[name] = wide

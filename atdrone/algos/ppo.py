@@ -27,6 +27,8 @@ class PPOConfig:
     collision_credit "team" trains on the task's shared reward; "own" hands the
     collision term only to the learners that collided, times collision_scale (a
     training signal: evaluation always reports the task's own reward).
+    history: past frames of its own observations and actions a network reads (0 = the
+    current observation only; see atdrone.algos.history).
     """
 
     num_envs: int = 64
@@ -48,6 +50,7 @@ class PPOConfig:
     proximity: float = 0.15
     collision_credit: Literal["team", "own"] = "team"
     collision_scale: float = 1.0
+    history: int = 0
 
 
 PRESETS: dict[str, PPOConfig] = {
@@ -83,6 +86,8 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
     for name in ("lr", "clip", "max_grad_norm"):
         if getattr(cfg, name) <= 0:
             raise ConfigError(f"{path}.{name}", f"must be > 0, got {getattr(cfg, name)}")
+    if cfg.history < 0:
+        raise ConfigError(f"{path}.history", f"must be >= 0, got {cfg.history}")
     if cfg.collision_scale < 0:
         raise ConfigError(f"{path}.collision_scale", f"must be >= 0, got {cfg.collision_scale}")
     for name in ("gamma", "gae_lambda"):
@@ -99,6 +104,7 @@ def net_config(cfg: PPOConfig, centralised_critic: bool = False) -> NetConfig:
         init_log_std=cfg.init_log_std,
         centralised_critic=centralised_critic,
         proximity=cfg.proximity,
+        history=cfg.history,
     )
 
 

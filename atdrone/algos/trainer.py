@@ -43,7 +43,8 @@ class TrainConfig:
     update, which runs while the rollout is idle (set both to 1 when sharing the cores).
     init_checkpoint: start from this policy's weights (e.g. a best response fine-tuned
     from a self-play drone); its architecture must match the PPO config's, except that
-    a decentralised critic may be widened into a centralised one.
+    the new network may be wider (a centralised critic, more past frames: ppo.history);
+    the new inputs start with zero weights, so it starts acting as the checkpoint does.
     start_std: start from this exploration noise (the Gaussian's std in pre-squash
     units), overriding the initial checkpoint's (0: keep it). A fine-tune at low noise
     optimises what a deterministic evaluation plays.
@@ -125,7 +126,7 @@ class Trainer:
                 if start.cfg == self.net:
                     self.model.load_state_dict(start.state_dict())
                 else:
-                    self.model.widen_from(start)  # a decentralised critic into a centralised one, else ValueError
+                    self.model.widen_from(start)  # the new inputs get zero weights, else ValueError
             except ValueError:
                 raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}") from None
         if cfg.start_std > 0:
