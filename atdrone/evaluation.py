@@ -75,6 +75,46 @@ def crash_shares(records: pd.DataFrame) -> dict[str, float]:
     return {"learner_crash": 100.0 * learner.mean(), "partner_only_crash": 100.0 * partner_only.mean()}
 
 
+CRASH_KINDS = (
+    "learner-learner",
+    "learner-partner",
+    "partner-partner",
+    "learner-wall",
+    "learner-obstacle",
+    "partner-wall",
+    "partner-obstacle",
+)
+NUM_WALLS = 4  # geometry.names lists the four walls first
+
+
+def crash_kinds(info: dict, envs: np.ndarray, learner_slots: np.ndarray, pairs: np.ndarray) -> list[str]:
+    """What collided in each of ``envs`` this step, as "+"-joined CRASH_KINDS ("" when nothing did).
+
+    learner_slots (len(envs), num_ctrl); pairs (pairs, 2) as ``BatchedPursuit.pairs``.
+    """
+    P = info["collided"].shape[1]
+    learner = np.zeros((len(envs), P), dtype=bool)
+    np.put_along_axis(learner, learner_slots, True, axis=1)
+    role = np.where(learner, "learner", "partner")
+    hit_pairs, hit_obstacle = info["hit_pairs"][envs], info["hit_obstacle"][envs]
+    out = []
+    for n in range(len(envs)):
+        kinds = set()
+        for p in np.flatnonzero(hit_pairs[n]):
+            a, b = sorted(role[n, pairs[p]])
+            kinds.add(f"{a}-{b}")
+        for k in np.flatnonzero(hit_obstacle[n] >= 0):
+            kinds.add(f"{role[n, k]}-{'wall' if hit_obstacle[n, k] < NUM_WALLS else 'obstacle'}")
+        out.append("+".join(c for c in CRASH_KINDS if c in kinds))
+    return out
+
+
+def crash_breakdown(records: pd.DataFrame) -> dict[str, float]:
+    """% of episodes whose ending collision involved each of CRASH_KINDS (an episode may count twice)."""
+    crash = records["crash"].fillna("")
+    return {kind: 100.0 * float(crash.str.split("+").map(lambda ks, k=kind: k in ks).mean()) for kind in CRASH_KINDS}
+
+
 def run_episodes(
     learner: Policy,
     task: TaskConfig | str,
@@ -124,6 +164,7 @@ def run_episodes(
                 rec["learner_crashed"][idx] = np.take_along_axis(hit, slots, axis=1).any(1)
                 partner_slots = info["team"]["partner_slots"][idx]
                 rec["partner_crashed"][idx] = np.take_along_axis(hit, partner_slots, axis=1).any(1)
+                rec["crash"][idx] = crash_kinds(info, idx, slots, core.pairs)
                 finished |= new
                 if on_progress is not None:
                     on_progress(len(idx))
@@ -149,6 +190,7 @@ _FIELDS = {
     "learner_slots": object,
     "learner_crashed": bool,  # a learner drone was in the collision that ended the episode
     "partner_crashed": bool,  # a partner drone was in it
+    "crash": object,  # what collided at the end: "+"-joined CRASH_KINDS, "" when none
 }
 
 

@@ -5,7 +5,8 @@ drone in every pursuer slot, the number the zoo's skill levels refer to: about 7
 54 % SUC) and its metrics as the learner with each zoo's partners, on the task it was
 trained on. Optionally compares a best response (--br PATH) with self-play policies
 (--sp PATH ..., default sp_high) on a zoo (--br-zoo), with the standard error of SUC
-and the share of episodes ended by a learner's collision or by the partners alone.
+the share of episodes ended by a learner's collision or by the partners alone, and
+what collided (learner/partner with learner/partner, wall or obstacle).
 Usage: python benchmarks/zoo_drones.py [--episodes 500] [--seeds 0] [--br runs/br_zoo1/last.pt]
        python benchmarks/zoo_drones.py --only-br --br BR.pt --sp SP.pt --episodes 1000 --seeds 0 1
 """
@@ -33,7 +34,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from atdrone.checkpoint import load_policy, read_header
-    from atdrone.evaluation import METRICS, crash_shares, evaluate, metrics, run_episodes
+    from atdrone.evaluation import METRICS, crash_breakdown, crash_shares, evaluate, metrics, run_episodes
 
     def self_play(path: Path) -> dict[str, float]:
         policy = load_policy(path)
@@ -57,7 +58,8 @@ def main() -> None:
             result = evaluate(load_policy(path), task, args.br_zoo, episodes=args.episodes, seeds=args.seeds)
             suc = result.records["success"].to_numpy(float)
             se = 100.0 * float(np.sqrt(suc.mean() * (1 - suc.mean()) / len(suc)))
-            return {**result.mean, "SUC_se": se, **crash_shares(result.records), "checkpoint": path}
+            shares = {**crash_shares(result.records), "crash_kinds": crash_breakdown(result.records)}
+            return {**result.mean, "SUC_se": se, **shares, "checkpoint": path}
 
         out["best_response"] = {"task": task, "zoo": args.br_zoo, "br": on_zoo(args.br)}
         out["best_response"]["self_play"] = [on_zoo(p) for p in args.sp]

@@ -555,3 +555,21 @@ def test_step_rejects_actions_of_the_wrong_shape_and_steps_before_reset() -> Non
     env.reset()
     with pytest.raises(ValueError, match="shape"):
         env.step(np.zeros((4,)))
+
+
+def test_info_names_who_hit_what():
+    # 0 and 1 fly side by side 0.1 m apart (< 0.2); 2 flies left into the wall (0.12 -> 0.09 m
+    # from it, < 0.1); 3 flies up in the open.
+    env = make(still_evaders())
+    place(env, [(1.0, 1.0, RIGHT), (1.0, 1.1, RIGHT), (0.12, 3.0, math.pi), (3.0, 1.0, UP)], [(2.0, 4.5), (3.0, 4.5)])
+    _, _, done, info = env.step(np.zeros((1, 4)))
+    assert done[0] and info["done_reason"][0] == COLLISION
+    np.testing.assert_array_equal(info["collided"][0], [True, True, True, False])
+    hit = {tuple(p) for p, h in zip(env.pairs, info["hit_pairs"][0], strict=True) if h}
+    assert hit == {(0, 1)}
+    assert [env.geometry.names[k] if k >= 0 else None for k in info["hit_obstacle"][0]] == [
+        None,
+        None,
+        "wall_left",
+        None,
+    ]

@@ -20,7 +20,17 @@ from atdrone.envs import BatchedPursuit
 from atdrone.envs.core import CAPTURED
 from atdrone.envs.gym import AdaptiveTeamingEnv
 from atdrone.envs.render import record_episode
-from atdrone.evaluation import METRICS, GridCell, crash_shares, evaluate, evaluate_grid, metrics, run_episodes
+from atdrone.evaluation import (
+    METRICS,
+    GridCell,
+    crash_breakdown,
+    crash_kinds,
+    crash_shares,
+    evaluate,
+    evaluate_grid,
+    metrics,
+    run_episodes,
+)
 from atdrone.policies import DroneBatch, GreedyPolicy, StatelessPolicy, VicsekPolicy
 from atdrone.policies.zoo import ZOO_NAMES, ZooError, checkpoint_path, load_zoo
 from atdrone.reports import format_table
@@ -441,3 +451,23 @@ def test_records_name_whether_learners_or_partners_crashed(straight_learners):
         assert shares == {"learner_crash": 100.0, "partner_only_crash": 0.0}
     else:
         assert shares == pytest.approx({"learner_crash": 100.0 - wall_only, "partner_only_crash": wall_only})
+    # late: a straight flyer reached the bar (x 1.0-2.5) or the top wall; earlier, it clipped a circling drone
+    late = records["length"] >= 30
+    assert records["crash"][late].isin([f"{straight}-wall", f"{straight}-obstacle"]).all()
+    assert records["crash"][~late].str.contains("learner-partner").all()
+    breakdown = crash_breakdown(records)
+    assert breakdown[f"{straight}-obstacle"] > 0
+    assert breakdown[f"{straight}-wall"] + breakdown[f"{straight}-obstacle"] == pytest.approx(wall_only)
+    assert breakdown["learner-partner"] == pytest.approx(100.0 - wall_only)
+    assert breakdown["learner-learner"] == breakdown["partner-partner"] == 0.0
+
+
+def test_crash_kinds_by_role():
+    info = {
+        "collided": np.array([[True, True, True, False], [False, False, True, True]]),
+        "hit_pairs": np.array([[True, False, False, False, False, False], [False] * 5 + [True]]),
+        "hit_obstacle": np.array([[-1, -1, 0, -1], [-1, -1, -1, 4]]),
+    }
+    pairs = np.stack(np.triu_indices(4, 1), 1)  # (0,1) first, (2,3) last
+    kinds = crash_kinds(info, np.array([0, 1]), np.array([[0, 2], [0, 1]]), pairs)
+    assert kinds == ["learner-partner+learner-wall", "partner-partner+partner-obstacle"]

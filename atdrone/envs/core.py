@@ -36,7 +36,11 @@ Starting State
 Episode End
     Captured all evaders (success), a collision (pursuers < collision_distance apart
     or a pursuer < safe_radius from an obstacle or wall) when collision_ends_episode,
-    or task_horizon steps (timeout). ``info`` reports how each environment ended.
+    or task_horizon steps (timeout). ``info`` reports how each environment ended, and
+    who collided this step: collided (B, P) the pursuers in a collision, hit_pairs
+    (B, pairs) the pursuer pairs closer than collision_distance (in ``pairs`` order),
+    hit_obstacle (B, P) the index into ``geometry.names`` of the obstacle or wall a
+    pursuer hit (-1: none).
 
 Arguments
     task: a TaskConfig, task name or path; num_envs; seed for the numpy Generator
@@ -161,6 +165,7 @@ class BatchedPursuit:
         self._entity_index = (np.arange(self.num_p)[:, None], np.concatenate([ev, self._others], 1))
         self._entity_slots = np.r_[np.arange(self.num_e), np.arange(self.num_e + 1, self.num_e + self.num_p)]
         self._pairs = np.triu_indices(self.num_p, 1)
+        self.pairs = np.stack(self._pairs, 1)  # (pairs, 2) the pursuer pairs of info["hit_pairs"]
         # (pairs, P) incidence: which two pursuers make up each pair.
         self._pair_member = np.zeros((len(self._pairs[0]), self.num_p), dtype=np.int64)
         self._pair_member[np.arange(len(self._pairs[0])), self._pairs[0]] = 1
@@ -289,7 +294,9 @@ class BatchedPursuit:
         pair_d = np.sqrt((px[:, i] - px[:, j]) ** 2 + (py[:, i] - py[:, j]) ** 2)  # (B, pairs)
         pair_hit = pair_d < task.collision_distance
         p_obst = signed_distances(pos_p, self.geometry)
-        collided = p_obst[0].min(-1) < task.safe_radius  # (B, P)
+        nearest = p_obst[0].argmin(-1)  # (B, P) index into geometry.names
+        collided = np.take_along_axis(p_obst[0], nearest[..., None], -1)[..., 0] < task.safe_radius  # (B, P)
+        hit_obstacle = np.where(collided, nearest, -1)
         collided = collided | ((pair_hit.astype(np.int64) @ self._pair_member) > 0)
         any_collision = collided.any(-1)
 
@@ -330,6 +337,8 @@ class BatchedPursuit:
             "episode_collided": ep_collided.copy(),
             "episode_captured": captured.sum(-1),
             "collided": collided,
+            "hit_pairs": pair_hit,
+            "hit_obstacle": hit_obstacle,
             "captured_now": newly,
             "final_obs": obs.copy(),
         }
