@@ -142,7 +142,8 @@ class NeuralPolicy:
             else:  # a new batch of environments
                 self.memory = None
 
-    def _inputs(self, batch: DroneBatch) -> np.ndarray:
+    def inputs(self, batch: DroneBatch) -> np.ndarray:
+        """Network inputs of ``batch``: its observations, with past frames when the network reads them."""
         h = self.model.cfg.history
         if not h:
             return np.ascontiguousarray(batch.obs)
@@ -155,7 +156,7 @@ class NeuralPolicy:
     def act(self, batch: DroneBatch) -> np.ndarray:
         if len(batch) == 0:
             return np.zeros(0)
-        dist = self.model.dist(torch.from_numpy(self._inputs(batch)), batch.core.num_e)
+        dist = self.model.dist(torch.from_numpy(self.inputs(batch)), batch.core.num_e)
         u = dist.mean
         if not self.deterministic:
             u = u + dist.stddev * torch.randn(u.shape, generator=self.generator)

@@ -136,7 +136,7 @@ class RolloutWorker:
         self._keys = np.tile(np.arange(k), B)
         self.memory = ObsHistory(net.history, B, k, self.core.obs_dim) if net.history else None
 
-    def _inputs(self, obs: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    def inputs(self, obs: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Network inputs (n, k, input_dim) of learner observations (n, k, D) of envs ``rows`` (default all)."""
         if self.memory is None:
             return obs
@@ -177,7 +177,7 @@ class RolloutWorker:
         states = np.empty((steps, B, state.shape[-1]), np.float32) if state is not None else None
         for t in range(steps):
             t0 = time.perf_counter()
-            inputs = self._inputs(self.obs)
+            inputs = self.inputs(self.obs)
             dist = self.model.dist(torch.from_numpy(inputs), self.num_e)
             ut = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=self.generator)
             lp = squash_log_prob(dist, ut)
@@ -203,7 +203,7 @@ class RolloutWorker:
                     if central:
                         assert self.core.final_state is not None  # set by the core at every episode end
                         fs = global_state(self.core.final_state, self.core.geometry, self.core.num_p)[timeout]
-                    final = self._inputs(info["final_obs"][timeout], timeout)
+                    final = self.inputs(info["final_obs"][timeout], timeout)
                     rewards[t, timeout] += self.gamma * self._values(final, fs)
                 for i in idx:
                     episodes.append(
@@ -221,7 +221,7 @@ class RolloutWorker:
             t3 = time.perf_counter()
             t_inf += (t1 - t0) + (t3 - t2)
             t_sim += t2 - t1
-        last = self._values(self._inputs(self.obs), state)
+        last = self._values(self.inputs(self.obs), state)
         return Fragment(
             obs=obs,
             u=u,

@@ -100,10 +100,10 @@ def test_neural_policy_remembers_per_slot_and_forgets_at_episode_end():
     np.testing.assert_allclose(policy.memory.actions[:, :, 0], first.reshape(2, 4), rtol=1e-6)
     obs2 = core.step(first.reshape(2, 4))[0]
     again = DroneBatch.all_slots(core, obs2)
-    inputs = policy._inputs(again)
+    inputs = policy.inputs(again)
     np.testing.assert_array_equal(inputs[:, core.obs_dim : 2 * core.obs_dim], obs.reshape(8, -1))
     policy.reset(np.array([True, False]))
-    inputs = policy._inputs(again)
+    inputs = policy.inputs(again)
     np.testing.assert_array_equal(inputs[:4, core.obs_dim : 2 * core.obs_dim], obs2[0])  # env 0 starts over
     np.testing.assert_array_equal(inputs[4:, core.obs_dim : 2 * core.obs_dim], obs[1])
     policy.reset(np.ones(5, dtype=bool))  # another batch of environments: a new memory

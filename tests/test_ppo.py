@@ -312,3 +312,17 @@ def test_start_std_overrides_the_initial_checkpoints_noise(tmp_path):
     torch.testing.assert_close(quiet.model.mu.weight, sp.model.mu.weight)  # only the noise changed
     with pytest.raises(ConfigError, match="start_std"):
         _tiny(tmp_path, start_std=-0.1)
+
+
+def test_a_run_with_history_starts_from_a_checkpoint_without_it(tmp_path):
+    sp = Trainer(_tiny(tmp_path, name="sp"))
+    path = sp.save()
+    ppo = {**_tiny(tmp_path).ppo, "history": 2}
+    br = Trainer(_tiny(tmp_path, name="br", mode="best_response", zoo="zoo1", init_checkpoint=str(path), ppo=ppo))
+    assert br.model.cfg.history == 2
+    obs = br.worker.obs
+    inputs = torch.from_numpy(br.worker.inputs(obs))
+    torch.testing.assert_close(br.model.dist(inputs, 2).mean, sp.model.dist(torch.from_numpy(obs), 2).mean)
+    assert np.isfinite(br.update_once()["train/value_loss"])
+    with pytest.raises(ConfigError, match="init_checkpoint"):
+        Trainer(_tiny(tmp_path, name="none", init_checkpoint=str(tmp_path / "missing.pt")))

@@ -40,19 +40,20 @@ class ObsHistory:
         B, K, _, D = self.obs.shape
         return B, K, D
 
-    def augment(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray) -> np.ndarray:
-        """Network inputs (M, input_dim) for current observations (M, D) of drones (env, key)."""
+    def _past(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Past frames (M, h, D) and actions (M, h); a fresh drone's past is ``obs`` and 0."""
         fresh = self.fresh[env, key]
         past = np.where(fresh[:, None, None], obs[:, None, :], self.obs[env, key])
-        acts = np.where(fresh[:, None], 0.0, self.actions[env, key])
-        M = len(obs)
-        return np.concatenate([obs, past.reshape(M, -1), acts], -1).astype(np.float32)
+        return past, np.where(fresh[:, None], 0.0, self.actions[env, key])
+
+    def augment(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray) -> np.ndarray:
+        """Network inputs (M, input_dim) for current observations (M, D) of drones (env, key)."""
+        past, acts = self._past(obs, env, key)
+        return np.concatenate([obs, past.reshape(len(obs), -1), acts], -1).astype(np.float32)
 
     def record(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray, actions: np.ndarray) -> None:
         """Push the observations (M, D) the drones acted on and their actions (M,) in [-1, 1]."""
-        fresh = self.fresh[env, key]
-        past = np.where(fresh[:, None, None], obs[:, None, :], self.obs[env, key])
-        acts = np.where(fresh[:, None], 0.0, self.actions[env, key])
+        past, acts = self._past(obs, env, key)
         self.obs[env, key] = np.concatenate([obs[:, None, :], past[:, :-1]], 1)
         self.actions[env, key] = np.concatenate([actions[:, None], acts[:, :-1]], 1)
         self.fresh[env, key] = False

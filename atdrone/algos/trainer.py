@@ -121,6 +121,8 @@ class Trainer:
             path = Path(cfg.init_checkpoint)
             if not path.exists():  # repository-relative, like zoo checkpoints
                 path = repo_path(path)
+            if not path.is_file():
+                raise ConfigError("init_checkpoint", f"no checkpoint at {cfg.init_checkpoint} (train that run first)")
             start, _ = load_checkpoint(path, expect_task=self.task.name)
             try:
                 if start.cfg == self.net:
