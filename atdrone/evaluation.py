@@ -20,6 +20,7 @@ import pandas as pd
 
 from atdrone.config import TaskConfig, load_task
 from atdrone.envs.core import CAPTURED, DONE_REASONS, BatchedPursuit
+from atdrone.envs.geometry import NUM_WALLS
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import Zoo, load_zoo
 from atdrone.teams import Match, PartnerSampler
@@ -84,7 +85,6 @@ CRASH_KINDS = (
     "partner-wall",
     "partner-obstacle",
 )
-NUM_WALLS = 4  # geometry.names lists the four walls first
 
 
 def crash_kinds(info: dict, envs: np.ndarray, learner_slots: np.ndarray, pairs: np.ndarray) -> list[str]:
@@ -92,27 +92,31 @@ def crash_kinds(info: dict, envs: np.ndarray, learner_slots: np.ndarray, pairs: 
 
     learner_slots (len(envs), num_ctrl); pairs (pairs, 2) as ``BatchedPursuit.pairs``.
     """
-    P = info["collided"].shape[1]
-    learner = np.zeros((len(envs), P), dtype=bool)
+    learner = np.zeros((len(envs), info["collided"].shape[1]), dtype=bool)
     np.put_along_axis(learner, learner_slots, True, axis=1)
-    role = np.where(learner, "learner", "partner")
     hit_pairs, hit_obstacle = info["hit_pairs"][envs], info["hit_obstacle"][envs]
-    out = []
-    for n in range(len(envs)):
-        kinds = set()
-        for p in np.flatnonzero(hit_pairs[n]):
-            a, b = sorted(role[n, pairs[p]])
-            kinds.add(f"{a}-{b}")
-        for k in np.flatnonzero(hit_obstacle[n] >= 0):
-            kinds.add(f"{role[n, k]}-{'wall' if hit_obstacle[n, k] < NUM_WALLS else 'obstacle'}")
-        out.append("+".join(c for c in CRASH_KINDS if c in kinds))
-    return out
+    in_pair = learner[:, pairs[:, 0]].astype(int) + learner[:, pairs[:, 1]]  # learners in each pair: 2, 1, 0
+    wall = (hit_obstacle >= 0) & (hit_obstacle < NUM_WALLS)
+    obstacle = hit_obstacle >= NUM_WALLS
+    kinds = np.stack(
+        [
+            (hit_pairs & (in_pair == 2)).any(1),
+            (hit_pairs & (in_pair == 1)).any(1),
+            (hit_pairs & (in_pair == 0)).any(1),
+            (wall & learner).any(1),
+            (obstacle & learner).any(1),
+            (wall & ~learner).any(1),
+            (obstacle & ~learner).any(1),
+        ],
+        1,
+    )  # (n, CRASH_KINDS)
+    return ["+".join(k for k, hit in zip(CRASH_KINDS, row, strict=True) if hit) for row in kinds]
 
 
 def crash_breakdown(records: pd.DataFrame) -> dict[str, float]:
     """% of episodes whose ending collision involved each of CRASH_KINDS (an episode may count twice)."""
-    crash = records["crash"].fillna("")
-    return {kind: 100.0 * float(crash.str.split("+").map(lambda ks, k=kind: k in ks).mean()) for kind in CRASH_KINDS}
+    counts = records["crash"].fillna("").str.split("+").explode().value_counts()
+    return {kind: 100.0 * float(counts.get(kind, 0)) / len(records) for kind in CRASH_KINDS}
 
 
 def run_episodes(

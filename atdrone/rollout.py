@@ -142,7 +142,7 @@ class RolloutWorker:
             return obs
         n, k, D = obs.shape
         env = self._rows if rows is None else np.repeat(rows, k)
-        key = self._keys[: n * k]
+        key = np.tile(np.arange(k), n)
         return self.memory.augment(obs.reshape(n * k, D), env, key).reshape(n, k, -1)
 
     def set_weights(self, state_dict: dict[str, torch.Tensor]) -> None:

@@ -164,12 +164,10 @@ class BatchedPursuit:
         ev = np.arange(self.num_p, self.num_p + self.num_e)[None].repeat(self.num_p, 0)
         self._entity_index = (np.arange(self.num_p)[:, None], np.concatenate([ev, self._others], 1))
         self._entity_slots = np.r_[np.arange(self.num_e), np.arange(self.num_e + 1, self.num_e + self.num_p)]
-        self._pairs = np.triu_indices(self.num_p, 1)
-        self.pairs = np.stack(self._pairs, 1)  # (pairs, 2) the pursuer pairs of info["hit_pairs"]
+        self.pairs = np.stack(np.triu_indices(self.num_p, 1), 1)  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
         # (pairs, P) incidence: which two pursuers make up each pair.
-        self._pair_member = np.zeros((len(self._pairs[0]), self.num_p), dtype=np.int64)
-        self._pair_member[np.arange(len(self._pairs[0])), self._pairs[0]] = 1
-        self._pair_member[np.arange(len(self._pairs[0])), self._pairs[1]] = 1
+        self._pair_member = np.zeros((len(self.pairs), self.num_p), dtype=np.int64)
+        np.put_along_axis(self._pair_member, self.pairs, 1, axis=1)
         self.state = self._fresh_state(self.num_envs)
         self._obs: np.ndarray | None = None
         # the whole batch just before the last auto-reset (to show how episodes ended)
@@ -290,7 +288,7 @@ class BatchedPursuit:
         newly = active & (dist_pe < task.capture_range)
         captured = s.captured | newly
         px, py = pos_p[..., 0], pos_p[..., 1]
-        i, j = self._pairs
+        i, j = self.pairs.T
         pair_d = np.sqrt((px[:, i] - px[:, j]) ** 2 + (py[:, i] - py[:, j]) ** 2)  # (B, pairs)
         pair_hit = pair_d < task.collision_distance
         p_obst = signed_distances(pos_p, self.geometry)

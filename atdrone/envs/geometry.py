@@ -60,6 +60,7 @@ class Geometry:
         return len(self.names)
 
 
+NUM_WALLS = 4  # the first entries of Geometry.names
 _WALL_NX = np.array([1.0, -1.0, 0.0, 0.0])
 _WALL_NY = np.array([0.0, 0.0, 1.0, -1.0])
 
