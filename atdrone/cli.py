@@ -183,7 +183,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def _train_local(args: argparse.Namespace) -> int:
-    from atdrone.algos.trainer import load_train_config, run_training
+    from atdrone.learn.trainer import load_train_config, run_training
 
     cfg = load_train_config(
         args.config,
@@ -316,9 +316,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from atdrone.config import load_task
-    from atdrone.evaluation import evaluate_grid
     from atdrone.policies.zoo import RULES, ZOO_NAMES, PolicyError, load_zoo, policy_from_spec
-    from atdrone.reports import format_table, write_report
+    from atdrone.teams.evaluation import evaluate_grid
+    from atdrone.teams.reports import format_table, write_report
 
     tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]
     zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]

@@ -313,9 +313,9 @@ class Registry:
         """Register the policy in a checkpoint file: task, algorithm and sha256 come from its header.
 
         Other keyword arguments go to :meth:`add_member`. Imports torch (through
-        :mod:`atdrone.checkpoint`), which verifies the file's sha256 on the way.
+        :mod:`atdrone.models.checkpoint`), which verifies the file's sha256 on the way.
         """
-        from atdrone.checkpoint import read_header
+        from atdrone.models.checkpoint import read_header
 
         header = read_header(Path(checkpoint))
         fields.setdefault("task", header["task"])

@@ -2,7 +2,7 @@
 
 Prints JSON. Usage: python benchmarks/eval_speed.py [--task 4p2e1o] [--episodes 1000] [--seed 0]
 The target (issue 3): 1,000 episodes of 4p2e1o in under 30 s on the 2-core machine.
-The time is one call of ``atdrone.evaluation.evaluate`` (all episodes in parallel on
+The time is one call of ``atdrone.teams.evaluation.evaluate`` (all episodes in parallel on
 one BatchedPursuit), imports excluded.
 """
 
@@ -25,8 +25,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
-    from atdrone.evaluation import evaluate
     from atdrone.policies import GreedyPolicy
+    from atdrone.teams.evaluation import evaluate
 
     start = time.perf_counter()
     result = evaluate(GreedyPolicy(), args.task, args.zoo, episodes=args.episodes, seeds=(args.seed,))

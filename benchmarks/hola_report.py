@@ -33,10 +33,10 @@ def main() -> None:
     parser.add_argument("--out", default="reports/hola_vs_sp")
     args = parser.parse_args()
 
-    from atdrone.checkpoint import load_policy
-    from atdrone.evaluation import evaluate
+    from atdrone.policies.neural import load_policy
     from atdrone.service.driver import init_ray, run_experiment
     from atdrone.service.experiment import load_experiment
+    from atdrone.teams.evaluation import evaluate
 
     init_ray(None, num_cpus=2)
     out = Path(args.out)

@@ -30,7 +30,7 @@ def main() -> None:
     parser.add_argument("--update-threads", type=int, default=2, help="torch threads of the update")
     args = parser.parse_args()
 
-    from atdrone.algos.trainer import Trainer, load_train_config, plot_curve
+    from atdrone.learn.trainer import Trainer, load_train_config, plot_curve
 
     out = Path(args.out)
     cfg = load_train_config(

@@ -62,9 +62,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="alternating 1-worker / 2-worker rollout rounds")
     args = parser.parse_args()
 
-    from atdrone.algos.networks import ActorCritic, NetConfig
-    from atdrone.algos.trainer import Trainer, load_train_config
     from atdrone.config import load_task
+    from atdrone.learn.trainer import Trainer, load_train_config
+    from atdrone.models.networks import ActorCritic, NetConfig
     from atdrone.service.actors import RolloutWorkerActor
     from atdrone.service.driver import init_ray
 

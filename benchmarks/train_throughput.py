@@ -17,7 +17,7 @@ import numpy as np
 
 
 def measure(task: str, updates: int, mode: str = "self_play", **ppo: object) -> dict[str, object]:
-    from atdrone.algos.trainer import Trainer, load_train_config
+    from atdrone.learn.trainer import Trainer, load_train_config
 
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_train_config({"name": "bench", "task": task, "mode": mode, "out_dir": tmp, "ppo": dict(ppo)})

@@ -35,9 +35,10 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="also write the JSON to this file")
     args = parser.parse_args()
 
-    from atdrone.checkpoint import load_policy, read_header
-    from atdrone.evaluation import METRICS, crash_breakdown, crash_shares, evaluate, metrics, run_episodes
     from atdrone.fileio import atomic_write_bytes
+    from atdrone.models.checkpoint import read_header
+    from atdrone.policies.neural import load_policy
+    from atdrone.teams.evaluation import METRICS, crash_breakdown, crash_shares, evaluate, metrics, run_episodes
 
     def self_play(path: Path) -> dict[str, float]:
         policy = load_policy(path)

@@ -5,9 +5,9 @@
 
 The same protocol and files as ``atdrone evaluate``: every task x zoo cell plays
 --episodes episodes per seed with the policy in the task's learner slots and partners
-drawn from the zoo (``atdrone.evaluation.evaluate_grid``); prints the SUC / COL / AST /
+drawn from the zoo (``atdrone.teams.evaluation.evaluate_grid``); prints the SUC / COL / AST /
 REW table and writes ``DIR/<policy>_<task>_<zoo>.json`` (per cell: summary and per-seed
-metrics) and ``.csv`` (one row per episode) through ``atdrone.reports``. It runs in the
+metrics) and ``.csv`` (one row per episode) through ``atdrone.teams.reports``. It runs in the
 job's driver process; on a cluster give --out an absolute path you can read afterwards.
 Bad input exits with status 2 and a one-line error.
 """
@@ -52,9 +52,9 @@ def _fail(message: object) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.config import TASK_NAMES, ConfigError, load_task
-    from atdrone.evaluation import evaluate_grid
     from atdrone.policies.zoo import RULES, ZOO_NAMES, PolicyError, load_zoo, policy_from_spec
-    from atdrone.reports import format_table, write_report
+    from atdrone.teams.evaluation import evaluate_grid
+    from atdrone.teams.reports import format_table, write_report
 
     try:
         tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]

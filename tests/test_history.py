@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from atdrone.algos.history import ObsHistory, input_dim
-from atdrone.algos.networks import ActorCritic, NetConfig
-from atdrone.algos.ppo import ppo_config
-from atdrone.checkpoint import NeuralPolicy
 from atdrone.config import ConfigError, load_task
 from atdrone.envs import BatchedPursuit
-from atdrone.evaluation import run_episodes
+from atdrone.learn.ppo import ppo_config
+from atdrone.learn.rollout import RolloutWorker
+from atdrone.models.history import ObsHistory, input_dim
+from atdrone.models.networks import ActorCritic, NetConfig
 from atdrone.policies.base import DroneBatch
+from atdrone.policies.neural import NeuralPolicy
 from atdrone.policies.zoo import load_zoo
-from atdrone.rollout import RolloutWorker
+from atdrone.teams.evaluation import run_episodes
 
 
 def test_history_by_hand():

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from atdrone.algos.hola import (
+from atdrone.population.hypergraph import (
     distribution_entropy,
     hyperedge_weights,
     missing_hyperedges,

@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from atdrone.algos.networks import ActorCritic, NetConfig, action_log_prob, global_state, squash_log_prob
-from atdrone.algos.ppo import gae, ppo_config
-from atdrone.algos.trainer import Trainer, load_train_config
-from atdrone.checkpoint import CheckpointError, load_checkpoint, load_policy, read_header, save_checkpoint
 from atdrone.config import ConfigError
 from atdrone.envs import BatchedPursuit
+from atdrone.learn.ppo import gae, ppo_config
+from atdrone.learn.rollout import credited_rewards
+from atdrone.learn.trainer import Trainer, load_train_config
+from atdrone.models.checkpoint import CheckpointError, load_checkpoint, read_header, save_checkpoint
+from atdrone.models.networks import ActorCritic, NetConfig, action_log_prob, global_state, squash_log_prob
 from atdrone.policies.base import DroneBatch
-from atdrone.rollout import credited_rewards
+from atdrone.policies.neural import load_policy
 
 
 def gae_loop(rewards, values, dones, last_values, gamma, lam):
@@ -225,7 +226,7 @@ def test_stop_at_suc_stops_at_the_first_evaluation_that_reaches_it(tmp_path):
 
 
 def test_proximity_feature_by_hand():
-    from atdrone.algos.networks import EntityTrunk
+    from atdrone.models.networks import EntityTrunk
 
     trunk = EntityTrunk(NetConfig(entity_dim=4, hidden=4, proximity=0.15))
     block = torch.tensor([[1.0, 0.1 / 5.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]])  # visible at 0.1 m; masked

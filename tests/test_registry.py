@@ -108,8 +108,8 @@ def test_members_filter_by_run_task_and_status(registry: Registry) -> None:
 
 
 def test_add_checkpoint_takes_task_algorithm_and_sha256_from_the_header(registry: Registry, tmp_path: Path) -> None:
-    from atdrone.algos.networks import ActorCritic, NetConfig
-    from atdrone.checkpoint import save_checkpoint
+    from atdrone.models.checkpoint import save_checkpoint
+    from atdrone.models.networks import ActorCritic, NetConfig
 
     path = tmp_path / "learner.pt"
     header = save_checkpoint(

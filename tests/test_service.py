@@ -9,7 +9,7 @@ import mlflow
 import pytest
 import ray
 
-from atdrone.checkpoint import read_header
+from atdrone.models.checkpoint import read_header
 from atdrone.registry import Registry
 from atdrone.service.driver import STATE_FILE, run_experiment
 from atdrone.service.experiment import load_experiment

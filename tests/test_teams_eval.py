@@ -20,7 +20,9 @@ from atdrone.envs import BatchedPursuit
 from atdrone.envs.core import CAPTURED
 from atdrone.envs.gym import AdaptiveTeamingEnv
 from atdrone.envs.render import record_episode
-from atdrone.evaluation import (
+from atdrone.policies import DroneBatch, GreedyPolicy, StatelessPolicy, VicsekPolicy
+from atdrone.policies.zoo import ZOO_NAMES, ZooError, checkpoint_path, load_zoo
+from atdrone.teams.evaluation import (
     METRICS,
     GridCell,
     crash_breakdown,
@@ -31,10 +33,8 @@ from atdrone.evaluation import (
     metrics,
     run_episodes,
 )
-from atdrone.policies import DroneBatch, GreedyPolicy, StatelessPolicy, VicsekPolicy
-from atdrone.policies.zoo import ZOO_NAMES, ZooError, checkpoint_path, load_zoo
-from atdrone.reports import format_table
-from atdrone.teams import Match
+from atdrone.teams.match import Match
+from atdrone.teams.reports import format_table
 
 TURN = np.pi / 4
 

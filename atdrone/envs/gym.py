@@ -68,7 +68,7 @@ class AdaptiveTeamingEnv(_SingleView):
 
     Description
         One pursuit environment of ``task`` (SPEC sections 1-6). Every episode a
-        :class:`~atdrone.teams.Match` shuffles which pursuer slots the agent's num_ctrl
+        :class:`~atdrone.teams.match.Match` shuffles which pursuer slots the agent's num_ctrl
         learner drones fill and draws a zoo member for each of the other num_unctrl
         slots; the partners act on their own, the evaders are the environment.
 
@@ -104,7 +104,7 @@ class AdaptiveTeamingEnv(_SingleView):
 
     def __init__(self, task: TaskConfig | str = "4p2e1o", zoo: Zoo | str = "zoo1", render_mode: str | None = None):
         from atdrone.policies.zoo import load_zoo  # atdrone.policies builds on atdrone.envs
-        from atdrone.teams import Match
+        from atdrone.teams.match import Match
 
         self.zoo = zoo if not isinstance(zoo, str) else load_zoo(zoo)
         self.match = Match(BatchedPursuit(task, num_envs=1), self.zoo)

@@ -26,7 +26,7 @@ from atdrone.fileio import atomic_write
 if TYPE_CHECKING:  # atdrone.policies and atdrone.teams build on atdrone.envs
     from atdrone.policies.base import Policy as DronePolicy
     from atdrone.policies.zoo import Zoo
-    from atdrone.teams import Match
+    from atdrone.teams.match import Match
 
 Policy = Callable[[np.ndarray, BatchedPursuit], np.ndarray]  # obs (B, n, obs_dim), core -> actions (B, n)
 
@@ -285,7 +285,7 @@ def record_episode(
     ``policy``: a :class:`~atdrone.policies.Policy` or a function ``(obs, core) ->
     actions`` over the drones it steers; default :func:`chase_nearest`. Without
     ``partners`` it steers every pursuer (obs (1, num_p, obs_dim), actions (1, num_p)).
-    With ``partners`` (a zoo or partner policies) a :class:`~atdrone.teams.Match` on
+    With ``partners`` (a zoo or partner policies) a :class:`~atdrone.teams.match.Match` on
     the core gives it the task's num_ctrl learner slots (obs (1, num_ctrl, obs_dim),
     actions (1, num_ctrl)) and the partners drawn for the episode fill the others;
     they are drawn green. The episode runs until it ends (captured, collision,
@@ -300,7 +300,7 @@ def record_episode(
     match: Match | None = None
     stepper: Stepper = core
     if partners is not None:
-        from atdrone.teams import Match
+        from atdrone.teams.match import Match
 
         stepper = match = Match(core, partners, seed=seed)
     act = _actor(policy, core, match)

@@ -5,7 +5,7 @@ finished episode (not the auto-reset one) and starts the next episode from the s
 the core already drew, so a view and ``BatchedPursuit(num_envs=1)`` with the same seed
 and actions produce the same trajectories.
 
-It steps either the core itself (every pursuer) or a :class:`~atdrone.teams.Match` of
+It steps either the core itself (every pursuer) or a :class:`~atdrone.teams.match.Match` of
 one environment (the learners' slots; zoo partners steer the rest).
 """
 
@@ -20,7 +20,7 @@ from atdrone.config import TaskConfig
 from atdrone.envs.core import CAPTURED, COLLISION, DONE_REASONS, TIMEOUT, BatchedPursuit
 
 if TYPE_CHECKING:  # atdrone.teams builds on atdrone.envs: no import at run time
-    from atdrone.teams import Match
+    from atdrone.teams.match import Match
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,10 @@ import numpy as np
 from atdrone.envs.core import BatchedPursuit
 
 
+class PolicyError(RuntimeError):
+    """A policy cannot be had: an unknown name, a missing or unreadable checkpoint."""
+
+
 @dataclass(frozen=True)
 class DroneBatch:
     """M drones to act for: obs (M, obs_dim), env (M,), slot (M,) into ``core``."""

@@ -15,15 +15,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 from atdrone.config import ConfigError, parse_document, read_document, repo_path
-from atdrone.policies.base import Policy
+from atdrone.policies.base import Policy, PolicyError
 from atdrone.policies.rules import GreedyPolicy, VicsekPolicy
 
 ZOO_NAMES = ("zoo1", "zoo2", "zoo3")
 RULES: dict[str, type] = {"greedy": GreedyPolicy, "vicsek": VicsekPolicy}
-
-
-class PolicyError(RuntimeError):
-    """A policy cannot be had: an unknown name, a missing or unreadable checkpoint."""
 
 
 class ZooError(PolicyError):
@@ -114,10 +110,8 @@ def load_checkpoint(path: str | Path) -> Policy:
     path = Path(path)
     if not path.is_file():
         raise PolicyError(f"no checkpoint file {str(path)!r}")
-    try:
-        from atdrone.checkpoint import load_policy
-    except ImportError as exc:
-        raise PolicyError(f"cannot load checkpoint {str(path)!r}: checkpoint support is not available ({exc})") from exc
+    from atdrone.policies.neural import load_policy  # torch, only when a checkpoint is loaded
+
     try:
         return load_policy(path)
     except Exception as exc:  # a damaged or foreign file: torch, pickle, JSON and key errors alike

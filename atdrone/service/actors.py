@@ -19,14 +19,14 @@ import numpy as np
 import ray
 import torch
 
-from atdrone.algos.networks import ActorCritic, NetConfig
-from atdrone.algos.ppo import PPOConfig, ppo_update
-from atdrone.checkpoint import save_checkpoint
 from atdrone.config import TaskConfig
-from atdrone.evaluation import metrics, run_episodes
+from atdrone.learn.ppo import PPOConfig, ppo_update
+from atdrone.learn.rollout import Fragment, RolloutWorker
+from atdrone.models.checkpoint import save_checkpoint
+from atdrone.models.networks import ActorCritic, NetConfig
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import MemberSpec, build_policy
-from atdrone.rollout import Fragment, RolloutWorker
+from atdrone.teams.evaluation import metrics, run_episodes
 
 
 class PolicyCache:
@@ -143,7 +143,7 @@ class LearnerActor:
         """One PPO update over the fragments (passed as object refs, resolved by Ray)."""
         from dataclasses import replace
 
-        from atdrone.rollout import concat_fragments
+        from atdrone.learn.rollout import concat_fragments
 
         frag = concat_fragments(fragments)
         cfg = replace(self.ppo, ent_coef=self.ent_coef)

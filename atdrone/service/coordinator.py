@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 import ray
 
-from atdrone.algos import hola
-from atdrone.algos.ppo import net_config, ppo_config
 from atdrone.config import load_task
+from atdrone.learn.ppo import net_config, ppo_config
 from atdrone.policies.zoo import MemberSpec, load_zoo
+from atdrone.population import hypergraph as hola
 from atdrone.registry import find_registry_actor, new_member_id
 from atdrone.service.actors import LearnerActor, RolloutWorkerActor
 from atdrone.service.experiment import ExperimentConfig, registry_name
@@ -101,7 +101,7 @@ class Coordinator:
             self.net, self.ppo, self.task.players.num_e, self.num_p, self.learner_seed
         )
         if init_from is not None:
-            from atdrone.checkpoint import load_checkpoint
+            from atdrone.models.checkpoint import load_checkpoint
 
             model, _ = load_checkpoint(self.checkpoint_path(init_from))
             ray.get(learner.set_weights.remote(model.state_dict()))

@@ -220,14 +220,14 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
 
 def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> None:
     """Log the best member as an MLflow model with alias "champion", and a GIF of it playing."""
-    from atdrone.checkpoint import load_checkpoint
+    from atdrone.models.checkpoint import load_checkpoint
 
     path = run_dir / "members" / f"{best}.pt"
     model, header = load_checkpoint(path)
     tracker.log_model(model, name=f"atdrone-{cfg.name}", alias="champion", tags={"member": best})
     if cfg.gif:
-        from atdrone.checkpoint import NeuralPolicy
         from atdrone.envs.render import record_episode, save_gif
+        from atdrone.policies.neural import NeuralPolicy
 
         policy = NeuralPolicy(model, name=best)
         frames, _ = record_episode(cfg.task, seed=cfg.seed, policy=policy, frame_every=4, max_steps=400)

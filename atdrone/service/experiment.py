@@ -18,8 +18,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from atdrone.algos.ppo import ppo_config
 from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, read_document, require_at_least
+from atdrone.learn.ppo import ppo_config
 from atdrone.policies.zoo import load_zoo
 
 ALGORITHMS = ("sp", "pbt", "hola", "hola_no_g", "br")

@@ -17,13 +17,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from atdrone.algos.history import ObsHistory, input_dim
-from atdrone.algos.networks import ActorCritic, NetConfig, global_state, squash_log_prob
-from atdrone.algos.ppo import gae
 from atdrone.config import TaskConfig
 from atdrone.envs.core import DONE_REASONS, TIMEOUT, BatchedPursuit
+from atdrone.learn.ppo import gae
+from atdrone.models.history import ObsHistory, input_dim
+from atdrone.models.networks import ActorCritic, NetConfig, global_state, squash_log_prob
 from atdrone.policies.base import Policy
-from atdrone.teams import Match, PartnerSampler
+from atdrone.teams.match import Match, PartnerSampler
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """PPO for continuous steering: the config schema, GAE and the clipped-surrogate update.
 
 The update is a pure step over plain inputs: a model, its optimizer and a
-:class:`~atdrone.rollout.Fragment` of arrays, so it can run in another process (a
+:class:`~atdrone.learn.rollout.Fragment` of arrays, so it can run in another process (a
 Ray learner) than the rollout. It runs on the device of the model (a GPU when given).
 """
 
@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from atdrone.algos.networks import ActorCritic, NetConfig, squash_log_prob
 from atdrone.config import ConfigError, parse_document
+from atdrone.models.networks import ActorCritic, NetConfig, squash_log_prob
 
 
 @dataclass(frozen=True)
@@ -28,7 +28,7 @@ class PPOConfig:
     collision term only to the learners that collided, times collision_scale (a
     training signal: evaluation always reports the task's own reward).
     history: past frames of its own observations and actions a network reads (0 = the
-    current observation only; see atdrone.algos.history).
+    current observation only; see atdrone.models.history).
     """
 
     num_envs: int = 64

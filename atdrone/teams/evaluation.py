@@ -23,7 +23,7 @@ from atdrone.envs.core import CAPTURED, DONE_REASONS, BatchedPursuit
 from atdrone.envs.geometry import NUM_WALLS
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import Zoo, load_zoo
-from atdrone.teams import Match, PartnerSampler
+from atdrone.teams.match import Match, PartnerSampler
 
 METRICS = ("SUC", "COL", "AST", "REW")
 MAX_ENVS = 1024

@@ -12,7 +12,7 @@ action is tanh(u) in [-1, 1]; the log-std is a free parameter. The critic is a
 separate network of the same shape. The MAPPO critic adds the global state, pooled
 the same way (pursuers and evaders in absolute arena coordinates).
 
-With ``history`` h > 0 (:mod:`atdrone.algos.history`) the input also holds the drone's
+With ``history`` h > 0 (:mod:`atdrone.models.history`) the input also holds the drone's
 last h observations and actions: each entity's encoder then reads its features in
 every frame (past ones times their mask, plus the mask), so it can see how the entity
 moved, and the hidden layers read the past actions. New inputs always come last, so

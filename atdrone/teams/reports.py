@@ -19,8 +19,8 @@ from typing import Any
 
 import pandas as pd
 
-from atdrone.evaluation import METRICS, GridCell
 from atdrone.fileio import atomic_write_text
+from atdrone.teams.evaluation import METRICS, GridCell
 
 UNITS = {"SUC": "%", "COL": "%", "AST": "steps", "REW": ""}
 DECIMALS = {"SUC": 1, "COL": 1, "AST": 1, "REW": 2}

@@ -21,21 +21,17 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
-from atdrone.algos.history import ObsHistory
-from atdrone.algos.networks import ActorCritic, NetConfig
 from atdrone.envs.core import OBS_LAYOUT_VERSION
 from atdrone.fileio import atomic_write_bytes
-from atdrone.policies.base import DroneBatch
-from atdrone.policies.zoo import PolicyError
+from atdrone.models.networks import ActorCritic, NetConfig
 
 MAGIC = b"ATDRONE-CHECKPOINT 1\n"
 REQUIRED = ("architecture", "obs_layout_version", "task", "num_p", "num_e", "sha256")
 
 
-class CheckpointError(PolicyError, ValueError):
+class CheckpointError(ValueError):
     """A checkpoint file is corrupted, truncated or does not fit what it is loaded for."""
 
 
@@ -118,55 +114,3 @@ def load_checkpoint(path: str | Path, expect_task: str | None = None) -> tuple[A
         raise CheckpointError(f"{path}: weights do not match the architecture in the header: {exc}") from None
     model.eval()
     return model, header
-
-
-class NeuralPolicy:
-    """A trained actor as a zoo policy: batched, mean action by default.
-
-    A network that reads past frames (``history`` > 0) keeps them per (env, slot) and
-    forgets an environment's drones when its episode ends (:meth:`reset`).
-    """
-
-    def __init__(self, model: ActorCritic, name: str = "neural", deterministic: bool = True, seed: int = 0) -> None:
-        self.model = model
-        self.name = name
-        self.deterministic = deterministic
-        self.generator = torch.Generator().manual_seed(seed)
-        self.memory: ObsHistory | None = None
-
-    def reset(self, done: np.ndarray) -> None:
-        """Forget the past frames of the environments where ``done`` is true."""
-        if self.memory is not None:
-            if len(done) == self.memory.shape[0]:
-                self.memory.reset(done)
-            else:  # a new batch of environments
-                self.memory = None
-
-    def inputs(self, batch: DroneBatch) -> np.ndarray:
-        """Network inputs of ``batch``: its observations, with past frames when the network reads them."""
-        h = self.model.cfg.history
-        if not h:
-            return np.ascontiguousarray(batch.obs)
-        core = batch.core
-        if self.memory is None or self.memory.shape != (core.num_envs, core.num_p, core.obs_dim):
-            self.memory = ObsHistory(h, core.num_envs, core.num_p, core.obs_dim)
-        return self.memory.augment(batch.obs, batch.env, batch.slot)
-
-    @torch.no_grad()
-    def act(self, batch: DroneBatch) -> np.ndarray:
-        if len(batch) == 0:
-            return np.zeros(0)
-        dist = self.model.dist(torch.from_numpy(self.inputs(batch)), batch.core.num_e)
-        u = dist.mean
-        if not self.deterministic:
-            u = u + dist.stddev * torch.randn(u.shape, generator=self.generator)
-        actions = torch.tanh(u).numpy().astype(np.float64)
-        if self.memory is not None:
-            self.memory.record(batch.obs, batch.env, batch.slot, actions)
-        return actions
-
-
-def load_policy(path: str | Path, deterministic: bool = True) -> NeuralPolicy:
-    """A checkpoint as a policy in the zoo interface."""
-    model, header = load_checkpoint(path)
-    return NeuralPolicy(model, name=header.get("name", Path(path).stem), deterministic=deterministic)

@@ -22,22 +22,23 @@ import numpy as np
 import pandas as pd
 import torch
 
-from atdrone.algos.networks import ActorCritic
-from atdrone.algos.ppo import PPOConfig, learning_rate, net_config, ppo_config, ppo_update
-from atdrone.checkpoint import NeuralPolicy, save_checkpoint
 from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, load_task, repo_path, require_at_least
-from atdrone.evaluation import metrics, run_episodes
 from atdrone.fileio import atomic_write_bytes
+from atdrone.learn.ppo import PPOConfig, learning_rate, net_config, ppo_config, ppo_update
+from atdrone.learn.rollout import RolloutWorker
+from atdrone.models.checkpoint import save_checkpoint
+from atdrone.models.networks import ActorCritic
 from atdrone.policies.base import Policy
+from atdrone.policies.neural import NeuralPolicy
 from atdrone.policies.zoo import load_zoo
-from atdrone.rollout import RolloutWorker
+from atdrone.teams.evaluation import metrics, run_episodes
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A training run. ``ppo`` overrides the ``preset`` (see atdrone.algos.ppo.PRESETS).
+    """A training run. ``ppo`` overrides the ``preset`` (see atdrone.learn.ppo.PRESETS).
 
     torch_threads: torch threads of the rollout (inference); update_threads: of the PPO
     update, which runs while the rollout is idle (set both to 1 when sharing the cores).
@@ -116,7 +117,7 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.model = ActorCritic(self.net).to(self.device)
         if cfg.init_checkpoint:
-            from atdrone.checkpoint import load_checkpoint
+            from atdrone.models.checkpoint import load_checkpoint
 
             path = Path(cfg.init_checkpoint)
             if not path.exists():  # repository-relative, like zoo checkpoints
@@ -193,7 +194,7 @@ class Trainer:
         state_path = self.run_dir / "trainer_state.pt"
         if not state_path.is_file():
             return False
-        from atdrone.checkpoint import load_checkpoint
+        from atdrone.models.checkpoint import load_checkpoint
 
         model, header = load_checkpoint(self.run_dir / "last.pt", expect_task=self.task.name)
         self.model.load_state_dict(model.state_dict())
