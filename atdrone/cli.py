@@ -86,8 +86,9 @@ def add_render(subparsers: Any) -> argparse.ArgumentParser:
 
 def run_render(args: argparse.Namespace) -> int:
     from atdrone.config import load_task
-    from atdrone.envs.render import record_episode, save_gif, save_png
+    from atdrone.envs.render import save_gif, save_png
     from atdrone.policies.zoo import PolicyError, load_zoo, policy_from_spec
+    from atdrone.teams.replay import record_episode
 
     cfg = load_task(args.task)
     zoo = load_zoo(args.zoo) if args.zoo is not None else None
@@ -124,7 +125,8 @@ def add_demo(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from atdrone.envs.render import record_episode, save_gif
+    from atdrone.envs.render import save_gif
+    from atdrone.teams.replay import record_episode
 
     rows = []
     for n, task in enumerate(DEMO_TASKS, 1):

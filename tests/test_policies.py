@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from atdrone.envs.core import BatchedPursuit
+from atdrone.envs.kinematics import MAX_TURN
 from atdrone.policies import DroneBatch, GreedyPolicy, Policy, VicsekPolicy
 
-TURN = np.pi / 4  # radians per unit action
+TURN = MAX_TURN  # radians per unit action
 AVOID = 20 / 45  # greedy's 20-degree veer as an action
 UP = np.pi / 2
 # Teammates 1-3 parked far from drone 0, from each other, from walls and from the bar
@@ -34,7 +35,7 @@ def scene(
     s.pos[0, P:] = evaders
     s.heading[0, :P] = [heading0, *(mate_headings or [UP] * (P - 1))]
     s.captured[0] = captured or [False] * core.num_e
-    return DroneBatch.all_slots(core, core.observe())
+    return DroneBatch.all_slots(core.observe(), core.poses())
 
 
 def polar(origin: tuple[float, float], dist: float, angle: float) -> tuple[float, float]:
@@ -145,7 +146,7 @@ def _gaps_chasing_one_evader(policy: Policy, steps: int = 20) -> list[float]:
     step = core.cfg.players.velocity_p * core.cfg.dt
     gaps = []
     for _ in range(steps):
-        heading = s.heading[0, :P] + policy.act(DroneBatch.all_slots(core, core.observe())) * TURN
+        heading = s.heading[0, :P] + policy.act(DroneBatch.all_slots(core.observe(), core.poses())) * TURN
         s.pos[0, :2] += step * np.stack([np.cos(heading[:2]), np.sin(heading[:2])], -1)
         s.heading[0, :P] = heading
         gaps.append(float(np.linalg.norm(s.pos[0, 0] - s.pos[0, 1])))
@@ -171,7 +172,7 @@ def test_rule_actions_are_finite_and_within_the_turn_limit_on_random_scenes(poli
     s.heading[...] = rng.uniform(-np.pi, np.pi, size=s.heading.shape)
     s.captured[...] = rng.random(s.captured.shape) < 0.4
     s.captured[:4] = True  # nothing left to chase
-    actions = policy.act(DroneBatch.all_slots(core, core.observe()))
+    actions = policy.act(DroneBatch.all_slots(core.observe(), core.poses()))
     assert actions.shape == (256 * core.num_p,)
     assert np.isfinite(actions).all()
     assert (np.abs(actions) <= 1.0).all()
@@ -187,6 +188,6 @@ def test_rule_policies_act_on_any_subset_of_drones():
     batch = scene((1.8, 1.0), UP, [(1.4, 1.7), (3.0, 4.6)])
     for policy in (GreedyPolicy(), VicsekPolicy()):
         full = policy.act(batch)
-        sub = DroneBatch(batch.obs[[2, 0]], batch.env[[2, 0]], batch.slot[[2, 0]], batch.core)
+        sub = DroneBatch(batch.obs[[2, 0]], batch.env[[2, 0]], batch.slot[[2, 0]], batch.poses)
         np.testing.assert_array_equal(policy.act(sub), full[[2, 0]])
         assert isinstance(policy, Policy)

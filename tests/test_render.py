@@ -11,7 +11,9 @@ from PIL import Image
 
 from atdrone.cli import main
 from atdrone.envs.core import BatchedPursuit
-from atdrone.envs.render import chase_nearest, record_episode, render_frame, save_gif, save_png
+from atdrone.envs.render import render_frame, save_gif, save_png
+from atdrone.policies.rules import chase_nearest
+from atdrone.teams.replay import record_episode
 
 
 def test_render_frame_is_an_rgb_uint8_image_of_plausible_size():
@@ -30,7 +32,7 @@ def test_rendering_leaves_the_simulator_unchanged():
     core = BatchedPursuit("4p2e5o", num_envs=1, seed=3)
     obs = core.reset()
     for _ in range(5):
-        obs, *_ = core.step(chase_nearest(obs, core))
+        obs, *_ = core.step(chase_nearest(obs, core.num_e))
     before = core.state.copy()
     rng_before = core.rng.bit_generator.state
     render_frame(core, 0)

@@ -18,10 +18,10 @@ from atdrone.cli import main
 from atdrone.config import TASK_NAMES, ConfigError, TaskConfig, load_task
 from atdrone.envs import BatchedPursuit
 from atdrone.envs.core import CAPTURED
-from atdrone.envs.gym import AdaptiveTeamingEnv
-from atdrone.envs.render import record_episode
+from atdrone.envs.kinematics import MAX_TURN, wrap_angle
 from atdrone.policies import DroneBatch, GreedyPolicy, StatelessPolicy, VicsekPolicy
 from atdrone.policies.zoo import ZOO_NAMES, ZooError, checkpoint_path, load_zoo
+from atdrone.teams.adaptive import AdaptiveTeamingEnv
 from atdrone.teams.evaluation import (
     METRICS,
     GridCell,
@@ -34,9 +34,10 @@ from atdrone.teams.evaluation import (
     run_episodes,
 )
 from atdrone.teams.match import Match
+from atdrone.teams.replay import record_episode
 from atdrone.teams.reports import format_table
 
-TURN = np.pi / 4
+TURN = MAX_TURN
 
 
 class Constant(StatelessPolicy):
@@ -55,8 +56,7 @@ def short_horizon(task: str, horizon: int) -> TaskConfig:
     return load_task(doc)
 
 
-def wrap(angle: np.ndarray) -> np.ndarray:
-    return np.arctan2(np.sin(angle), np.cos(angle))
+wrap = wrap_angle
 
 
 def missing_zoo(tmp_path: Path) -> Path:
@@ -125,7 +125,7 @@ def test_match_partners_from_a_zoo_act_as_the_zoo_policy_on_their_slots():
     team, before = match.team(), core.state.heading.copy()
     env = np.repeat(np.arange(16), 2)
     slot = team["partner_slots"].reshape(-1)
-    expected = GreedyPolicy().act(DroneBatch(core.observe()[env, slot], env, slot, core)).reshape(16, 2)
+    expected = GreedyPolicy().act(DroneBatch(core.observe()[env, slot], env, slot, core.poses())).reshape(16, 2)
     match.step(np.zeros((16, 2)))
     after = core.final_state if core.final_state is not None else core.state
     turned = wrap(after.heading[:, :4] - before[:, :4])

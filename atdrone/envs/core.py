@@ -56,19 +56,29 @@ import numpy as np
 
 from atdrone.config import TaskConfig, load_task
 from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
-from atdrone.envs.geometry import Geometry, pick_nearest, signed_distances
+from atdrone.envs.geometry import Geometry, signed_distances
+from atdrone.envs.kinematics import advance, turn
+from atdrone.envs.observation import (
+    DIST_SCALE as DIST_SCALE,
+)
+from atdrone.envs.observation import (
+    ENTITY_FEATURES as ENTITY_FEATURES,
+)
+from atdrone.envs.observation import (
+    OBS_BOUND as OBS_BOUND,
+)
+from atdrone.envs.observation import (
+    OBS_LAYOUT_VERSION as OBS_LAYOUT_VERSION,
+)
+from atdrone.envs.observation import (
+    Arena,
+    Poses,
+    obs_dim,
+    observe,
+)
 
-OBS_LAYOUT_VERSION = 1
-ENTITY_FEATURES = 4
-DIST_SCALE = 5.0
-OBS_BOUND = 1.5  # |feature| never exceeds this: distances / 5 in a 3.6 x 5 arena, sin, cos, masks
 RUNNING, CAPTURED, COLLISION, TIMEOUT = 0, 1, 2, 3
 DONE_REASONS = ("running", "captured", "collision", "timeout")
-
-
-def obs_dim(num_p: int, num_e: int) -> int:
-    """Length of one pursuer's observation."""
-    return ENTITY_FEATURES * (num_e + num_p)
 
 
 @dataclass
@@ -124,26 +134,6 @@ def spawn(cfg: TaskConfig, rng: np.random.Generator, n: int, max_tries: int = 10
     return pos, np.full((n, pl.num_p + pl.num_e), np.pi / 2)
 
 
-def _relative(pos_from: np.ndarray, heading: np.ndarray, pos_to: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Distance, sin and cos of the bearing from each ``from`` to each ``to``.
-
-    pos_from (B, P, 2), heading (B, P), pos_to (B, M, 2) -> three (B, P, M) arrays.
-    """
-    dx = pos_to[:, None, :, 0] - pos_from[:, :, None, 0]
-    dy = pos_to[:, None, :, 1] - pos_from[:, :, None, 1]
-    dist = np.sqrt(dx * dx + dy * dy)
-    inv = 1.0 / np.maximum(dist, 1e-12)
-    hx, hy = np.cos(heading)[..., None], np.sin(heading)[..., None]
-    return dist, (hx * dy - hy * dx) * inv, (hx * dx + hy * dy) * inv
-
-
-def _others_index(num_p: int) -> np.ndarray:
-    """(P, P-1): for each pursuer the indices of its teammates in order."""
-    return np.array([[j for j in range(num_p) if j != i] for i in range(num_p)], dtype=np.intp).reshape(
-        num_p, num_p - 1
-    )
-
-
 class BatchedPursuit:
     """B AT-Drone pursuit environments stepped together (see the module docstring)."""
 
@@ -155,15 +145,10 @@ class BatchedPursuit:
         self.num_p = self.cfg.players.num_p
         self.num_e = self.cfg.players.num_e
         self.obs_dim = obs_dim(self.num_p, self.num_e)
-        self.geometry = Geometry.from_config(self.cfg)
+        self.arena = Arena.from_config(self.cfg)
+        self.geometry: Geometry = self.arena.geometry
         self.escape = EscapeParams()
         self.rng = np.random.default_rng(seed)
-        self._others = _others_index(self.num_p)
-        # observation slots of the evader blocks then the teammate blocks (the obstacle sits between)
-        # (rows, cols) into (P, N) pairwise arrays: each pursuer's evaders then teammates
-        ev = np.arange(self.num_p, self.num_p + self.num_e)[None].repeat(self.num_p, 0)
-        self._entity_index = (np.arange(self.num_p)[:, None], np.concatenate([ev, self._others], 1))
-        self._entity_slots = np.r_[np.arange(self.num_e), np.arange(self.num_e + 1, self.num_e + self.num_p)]
         self.pairs = np.stack(np.triu_indices(self.num_p, 1), 1)  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
         # (pairs, P) incidence: which two pursuers make up each pair.
         self._pair_member = np.zeros((len(self.pairs), self.num_p), dtype=np.int64)
@@ -215,35 +200,19 @@ class BatchedPursuit:
         return self._obs
 
     # ------------------------------------------------------------ observation
+    def poses(self, state: PursuitState | None = None) -> Poses:
+        """The poses record of ``state`` (default: current): views of its arrays, no copy."""
+        s = self.state if state is None else state
+        return Poses(pos=s.pos, heading=s.heading, captured=s.captured, arena=self.arena)
+
     def observe(
         self, state: PursuitState | None = None, obstacles: tuple[np.ndarray, np.ndarray] | None = None
     ) -> np.ndarray:
-        """Observations (B, num_p, obs_dim) float32 of ``state`` (default: current).
+        """Observations (B, num_p, obs_dim) float32 of ``state`` (default: current): :func:`observe` of its poses.
 
         ``obstacles``: the pursuers' signed distances and normals, when already known.
         """
-        s = self.state if state is None else state
-        P, B = self.num_p, s.pos.shape[0]
-        pos_p, head_p = s.pos[:, :P], s.heading[:, :P]
-        d, sn, cs = _relative(pos_p, head_p, s.pos)  # (B, P, N)
-        mask = d <= self.cfg.players.reception_range
-        mask[:, :, P:] &= ~s.captured[:, None, :]
-        od, on = obstacles if obstacles is not None else signed_distances(pos_p, self.geometry)
-        o_d, o_n = pick_nearest(od, on)
-        hx, hy = np.cos(head_p), np.sin(head_p)
-        tx, ty = -o_n[..., 0], -o_n[..., 1]  # towards the obstacle
-        out = np.empty((B, P, self.num_e + P, ENTITY_FEATURES), dtype=np.float32)
-        rows, ents = self._entity_index
-        m = mask[:, rows, ents]
-        out[:, :, self._entity_slots, 0] = m
-        out[:, :, self._entity_slots, 1] = d[:, rows, ents] * (m / DIST_SCALE)
-        out[:, :, self._entity_slots, 2] = sn[:, rows, ents] * m
-        out[:, :, self._entity_slots, 3] = cs[:, rows, ents] * m
-        out[:, :, self.num_e, 0] = 1.0
-        out[:, :, self.num_e, 1] = o_d / DIST_SCALE
-        out[:, :, self.num_e, 2] = hx * ty - hy * tx
-        out[:, :, self.num_e, 3] = hx * tx + hy * ty
-        return out.reshape(B, P, self.obs_dim)
+        return observe(self.poses(state), obstacles)
 
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -258,12 +227,8 @@ class BatchedPursuit:
         task, rw = cfg.task, cfg.task.reward
 
         # Pursuers: turn at most 45 degrees, then move at constant speed.
-        head_p = s.heading[:, :P] + np.clip(np.nan_to_num(actions), -1.0, 1.0) * (np.pi / 4)
-        head_p = np.arctan2(np.sin(head_p), np.cos(head_p))
-        step_p = cfg.players.velocity_p * dt
-        pos_p = s.pos[:, :P] + step_p * np.stack([np.cos(head_p), np.sin(head_p)], -1)
-        pos_p[..., 0] = np.clip(pos_p[..., 0], 0.0, self.geometry.width)
-        pos_p[..., 1] = np.clip(pos_p[..., 1], 0.0, self.geometry.height)
+        head_p = turn(s.heading[:, :P], actions)
+        pos_p = advance(s.pos[:, :P], head_p, self.arena.step, self.geometry.width, self.geometry.height)
 
         # Evaders: escape policy, wandering when calm.
         active = ~s.captured
@@ -273,9 +238,9 @@ class BatchedPursuit:
         )
         lo, hi = self.escape.wander_steps
         redraw = calm & (s.wander_left <= 0)
-        turn = self.rng.uniform(-self.escape.wander_turn, self.escape.wander_turn, size=head_e.shape)
+        veer = self.rng.uniform(-self.escape.wander_turn, self.escape.wander_turn, size=head_e.shape)
         span = self.rng.integers(lo, hi + 1, size=head_e.shape)
-        wander_heading = np.where(redraw, head_e + turn, s.wander_heading)
+        wander_heading = np.where(redraw, head_e + veer, s.wander_heading)
         wander_left = np.where(calm, np.where(redraw, span, s.wander_left) - 1, 0)
         new_head_e = np.where(active, np.where(calm, wander_heading, flee), head_e)
         pos_e = move_evaders(pos_e, new_head_e, cfg.players.velocity_e * dt, active, self.geometry, self.escape)

@@ -1,4 +1,4 @@
-"""Pictures of the pursuit simulator: single frames, PNG/GIF files and recorded episodes.
+"""Pictures of the pursuit simulator: single frames and PNG/GIF files.
 
 Matplotlib is imported only inside the functions that draw (on its Agg canvas, no
 pyplot), so importing :mod:`atdrone.envs` stays light. A frame shows one environment
@@ -6,29 +6,21 @@ of a :class:`BatchedPursuit`: the arena and its walls, box and disc obstacles,
 pursuers (blue; zoo partners green when a team plays) and evaders (red) with heading
 arrows, each pursuer's capture radius (solid ring) and perception radius (faint ring),
 captured evaders greyed and crossed, the step counter and, optionally, the trails the
-drones left.
+drones left. Recording whole episodes (policies, teams) is
+:func:`atdrone.teams.replay.record_episode`.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from atdrone.config import TaskConfig
-from atdrone.envs.core import DIST_SCALE, DONE_REASONS, ENTITY_FEATURES, RUNNING, BatchedPursuit, PursuitState
-from atdrone.envs.single import Stepper
+from atdrone.envs.core import BatchedPursuit, PursuitState
 from atdrone.fileio import atomic_write
-
-if TYPE_CHECKING:  # atdrone.policies and atdrone.teams build on atdrone.envs
-    from atdrone.policies.base import Policy as DronePolicy
-    from atdrone.policies.zoo import Zoo
-    from atdrone.teams.match import Match
-
-Policy = Callable[[np.ndarray, BatchedPursuit], np.ndarray]  # obs (B, n, obs_dim), core -> actions (B, n)
 
 PURSUER_COLOR = "#1f5fbf"
 PARTNER_COLOR = "#2a9d3a"
@@ -233,135 +225,3 @@ def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: fl
             f, format="GIF", save_all=True, append_images=rest, duration=duration, loop=0, optimize=True
         ),
     )
-
-
-_TURNS = np.linspace(-1.0, 1.0, 17)  # candidate actions of chase_nearest's safety filter
-
-
-def chase_nearest(obs: np.ndarray, core: BatchedPursuit, clearance: float = 0.35) -> np.ndarray:
-    """The default demo policy: steer each pursuer at its nearest visible evader.
-
-    Read from the observation alone (layout of :mod:`atdrone.envs.core`): the wanted
-    turn is clip(bearing / 45 degrees, -1, 1) towards the nearest unmasked evader
-    block, straight ahead when none is visible. A safety filter then picks, among 17
-    turns in [-1, 1], the one that best turns the nose away from every obstacle, wall
-    or teammate nearer than ``clearance`` metres (ties: closest to the wanted turn),
-    so demo episodes do not end at the first wall. obs (B, P, obs_dim) -> actions (B, P),
-    for every pursuer or any P of them.
-    """
-    B, P, _ = obs.shape  # P: the drones steered, every pursuer or some of them
-    E = core.num_e
-    blocks = obs.reshape(B, P, -1, ENTITY_FEATURES)
-    mask, dist = blocks[..., 0] > 0.5, blocks[..., 1] * DIST_SCALE
-    bearing = np.arctan2(blocks[..., 2], blocks[..., 3])
-
-    ev_dist = np.where(mask[..., :E], dist[..., :E], np.inf)
-    nearest = ev_dist.argmin(-1)[..., None]
-    seen = np.isfinite(np.take_along_axis(ev_dist, nearest, -1)[..., 0])
-    aim = np.take_along_axis(bearing[..., :E], nearest, -1)[..., 0]
-    want = np.where(seen, np.clip(aim / (np.pi / 4), -1.0, 1.0), 0.0)
-
-    # The obstacle block (slot E) and the teammate blocks: after turning by a, an entity at
-    # bearing b sits at b - a * pi/4; a near one should end up abeam or behind (cos <= 0).
-    near = mask[..., E:] & (dist[..., E:] < clearance)  # (B, P, M)
-    after = bearing[..., E:, None] - _TURNS * (np.pi / 4)  # (B, P, M, K)
-    unsafe = (near[..., None] * np.maximum(np.cos(after), 0.0)).sum(-2)  # (B, P, K)
-    cost = unsafe * 10.0 + np.abs(_TURNS - want[..., None])
-    return _TURNS[cost.argmin(-1)] if near.any() else want
-
-
-def record_episode(
-    task: TaskConfig | str,
-    seed: int | None = 0,
-    policy: Policy | DronePolicy | None = None,
-    max_steps: int | None = None,
-    frame_every: int = 1,
-    trails: bool = True,
-    title: str | None = None,
-    partners: Zoo | Sequence[DronePolicy] | None = None,
-) -> tuple[list[np.ndarray], dict[str, Any]]:
-    """Run one episode of ``BatchedPursuit(task, num_envs=1, seed)`` and draw it.
-
-    ``policy``: a :class:`~atdrone.policies.Policy` or a function ``(obs, core) ->
-    actions`` over the drones it steers; default :func:`chase_nearest`. Without
-    ``partners`` it steers every pursuer (obs (1, num_p, obs_dim), actions (1, num_p)).
-    With ``partners`` (a zoo or partner policies) a :class:`~atdrone.teams.match.Match` on
-    the core gives it the task's num_ctrl learner slots (obs (1, num_ctrl, obs_dim),
-    actions (1, num_ctrl)) and the partners drawn for the episode fill the others;
-    they are drawn green. The episode runs until it ends (captured, collision,
-    timeout) or for ``max_steps`` steps (outcome "running"). Every ``frame_every``-th
-    step is drawn, plus the first and the last (the pre-reset final state).
-    Returns the frames and a summary: task, seed, steps, outcome, return, captured,
-    num_e, and with partners the team (learner_slots, partner_slots, partners).
-    """
-    if frame_every < 1:
-        raise ValueError(f"frame_every must be >= 1, got {frame_every}")
-    core = BatchedPursuit(task, num_envs=1, seed=seed)
-    match: Match | None = None
-    stepper: Stepper = core
-    if partners is not None:
-        from atdrone.teams.match import Match
-
-        stepper = match = Match(core, partners, seed=seed)
-    act = _actor(policy, core, match)
-    obs = stepper.reset(seed=seed)
-    name = title if title is not None else f"{core.cfg.name}  seed {seed}"
-    team: dict[str, list[Any]] = {}
-    if match is not None:
-        team = {k: v[0].tolist() for k, v in match.team().items() if k != "partner_members"}
-        if title is None:
-            name += f"  partners: {', '.join(team['partners'])}"
-    renderer = FrameRenderer(core, 0, partner_slots=team.get("partner_slots", ()))
-    history = [core.state.pos[0].copy()]
-    frames = [renderer.draw(title=name)]
-    reason, step, final = RUNNING, 0, core.state
-    limit = core.cfg.task.task_horizon if max_steps is None else max_steps
-    try:
-        while step < limit:
-            obs, _, done, info = stepper.step(np.asarray(act(obs), dtype=np.float64).reshape(1, -1))
-            step += 1
-            if done[0]:
-                assert core.final_state is not None
-                final, reason = core.final_state, int(info["done_reason"][0])
-            else:
-                final = core.state
-            history.append(final.pos[0].copy())
-            if done[0] or step % frame_every == 0 or step == limit:
-                trail = np.asarray(history) if trails else None
-                frames.append(renderer.draw(final, title=name, trails=trail))
-            if done[0]:
-                break
-    finally:
-        renderer.close()
-    summary: dict[str, Any] = {
-        "task": core.cfg.name,
-        "seed": seed,
-        "steps": int(final.t[0]),
-        "outcome": DONE_REASONS[reason],
-        "return": float(final.ep_return[0]),
-        "captured": int(final.captured[0].sum()),
-        "num_e": core.num_e,
-    }
-    if team:
-        summary["team"] = team
-    return frames, summary
-
-
-def _actor(
-    policy: Policy | DronePolicy | None, core: BatchedPursuit, match: Match | None
-) -> Callable[[np.ndarray], np.ndarray]:
-    """``obs -> actions`` of the drones ``policy`` steers: every pursuer, or the match's learners."""
-    from atdrone.policies.base import DroneBatch
-    from atdrone.policies.base import Policy as PolicyProtocol
-
-    if policy is None:
-        return lambda obs: chase_nearest(obs, core)
-    if isinstance(policy, PolicyProtocol):
-        drones = policy
-        drones.reset(np.ones(1, dtype=bool))
-        if match is not None:
-            learners = match
-            return lambda obs: drones.act(learners.learner_batch())
-        return lambda obs: drones.act(DroneBatch.all_slots(core, obs))
-    steer = policy
-    return lambda obs: steer(obs, core)

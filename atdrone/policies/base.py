@@ -1,10 +1,11 @@
 """The policy interface: everything that drives a pursuer implements :class:`Policy`.
 
 A policy acts on a flat batch of M drones drawn from any environments and pursuer
-slots of one :class:`~atdrone.envs.BatchedPursuit`: their observations, and for
-rule-based policies the simulator state they need. It returns one action in
-[-1, 1] per drone. Policies with per-episode memory key it by (env, slot) and clear
-it in :meth:`Policy.reset` for the environments whose episode ended.
+slots: their observations, and for rule-based policies a poses record
+(:class:`~atdrone.envs.observation.Poses`: what a motion-capture frame gives, which
+the simulator fills too). No simulator is needed. It returns one action in [-1, 1]
+per drone. Policies with per-episode memory key it by (env, slot) and clear it in
+:meth:`Policy.reset` for the environments whose episode ended.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from atdrone.envs.core import BatchedPursuit
+from atdrone.envs.kinematics import turn_towards as turn_towards
+from atdrone.envs.observation import Poses
 
 
 class PolicyError(RuntimeError):
@@ -23,33 +25,46 @@ class PolicyError(RuntimeError):
 
 @dataclass(frozen=True)
 class DroneBatch:
-    """M drones to act for: obs (M, obs_dim), env (M,), slot (M,) into ``core``."""
+    """M drones to act for.
+
+    obs (M, obs_dim) their observations; env (M,) and slot (M,) the environment row
+    and pursuer slot of each (the keys of per-drone memory, and rows into ``poses``);
+    poses: the poses of every drone of those environments, for policies that read
+    positions rather than observations (None: observations only).
+    """
 
     obs: np.ndarray
     env: np.ndarray
     slot: np.ndarray
-    core: BatchedPursuit
+    poses: Poses | None = None
 
     @classmethod
-    def all_slots(cls, core: BatchedPursuit, obs: np.ndarray, slots: np.ndarray | None = None) -> DroneBatch:
-        """Every environment's drones in ``slots`` (default: all pursuers), env-major order."""
-        slots = np.arange(core.num_p) if slots is None else np.asarray(slots)
-        env = np.repeat(np.arange(core.num_envs), len(slots))
-        slot = np.tile(slots, core.num_envs)
-        return cls(obs=obs[env, slot], env=env, slot=slot, core=core)
+    def all_slots(cls, obs: np.ndarray, poses: Poses | None = None, slots: np.ndarray | None = None) -> DroneBatch:
+        """Every environment's drones in ``slots`` (default: all), env-major, from obs (B, num_p, obs_dim)."""
+        num_envs, num_p = obs.shape[:2]
+        slots = np.arange(num_p) if slots is None else np.asarray(slots)
+        env = np.repeat(np.arange(num_envs), len(slots))
+        slot = np.tile(slots, num_envs)
+        return cls(obs=obs[env, slot], env=env, slot=slot, poses=poses)
 
     def __len__(self) -> int:
         return len(self.env)
 
+    def need_poses(self, who: str) -> Poses:
+        """The poses record; a ValueError naming ``who`` when the batch carries none."""
+        if self.poses is None:
+            raise ValueError(f"{who} acts on poses, but this DroneBatch has none (pass poses=Poses(...))")
+        return self.poses
+
     @property
     def pos(self) -> np.ndarray:
         """(M, 2) own positions."""
-        return self.core.state.pos[self.env, self.slot]
+        return self.need_poses("DroneBatch.pos").pos[self.env, self.slot]
 
     @property
     def heading(self) -> np.ndarray:
         """(M,) own headings."""
-        return self.core.state.heading[self.env, self.slot]
+        return self.need_poses("DroneBatch.heading").heading[self.env, self.slot]
 
 
 @runtime_checkable
@@ -77,9 +92,3 @@ class StatelessPolicy:
 
     def act(self, batch: DroneBatch) -> np.ndarray:  # pragma: no cover - interface
         raise NotImplementedError
-
-
-def turn_towards(heading: np.ndarray, desired: np.ndarray) -> np.ndarray:
-    """The action in [-1, 1] that turns ``heading`` towards ``desired`` (radians) under the 45-degree limit."""
-    diff = np.arctan2(np.sin(desired - heading), np.cos(desired - heading))
-    return np.clip(diff / (np.pi / 4), -1.0, 1.0)

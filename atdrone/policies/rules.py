@@ -1,8 +1,10 @@
 """Rule-based teammates of the unseen zoo (SPEC section 8): greedy and VICSEK drones.
 
-Both read the simulator state of the drones they steer (own pose, evaders, teammates,
-obstacles) and obey the same 45-degree turn limit as every pursuer: they choose a
-desired heading and :func:`~atdrone.policies.base.turn_towards` bounds the turn.
+Both read a poses record (``batch.poses``: own pose, evaders, teammates, and the
+arena's obstacles), as a motion-capture frame gives it, and obey the same 45-degree
+turn limit as every pursuer: they choose a desired heading and
+:func:`~atdrone.envs.kinematics.turn_towards` bounds the turn. :func:`chase_nearest`,
+the demo's default, reads the observation alone.
 """
 
 from __future__ import annotations
@@ -12,7 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from atdrone.envs.geometry import pick_nearest, signed_distances
-from atdrone.policies.base import DroneBatch, StatelessPolicy, turn_towards
+from atdrone.envs.kinematics import MAX_TURN, turn_towards, wrap_angle
+from atdrone.envs.observation import DIST_SCALE, ENTITY_FEATURES
+from atdrone.policies.base import DroneBatch, StatelessPolicy
 
 
 @dataclass(frozen=True)
@@ -30,8 +34,10 @@ class Scene:
     obst_normal: np.ndarray  # (M, K, 2) pointing from the obstacle to the drone
 
     @classmethod
-    def of(cls, batch: DroneBatch) -> Scene:
-        core, s, P = batch.core, batch.core.state, batch.core.num_p
+    def of(cls, batch: DroneBatch, who: str = "a rule-based policy") -> Scene:
+        """The scene of every drone of ``batch``, from ``batch.poses`` (ValueError without)."""
+        s = batch.need_poses(who)
+        P = s.arena.num_p
         pos, rows = batch.pos, np.arange(len(batch))
         ev = s.pos[batch.env, P:]
         ed = np.sqrt(((ev - pos[:, None]) ** 2).sum(-1))
@@ -42,7 +48,7 @@ class Scene:
         mate_vec = mates - pos[:, None]
         mate_dist = np.sqrt((mate_vec**2).sum(-1))
         mate_dist[rows, batch.slot] = np.inf
-        od, on = signed_distances(pos, core.geometry)
+        od, on = signed_distances(pos, s.arena.geometry)
         return cls(
             pos=pos,
             heading=batch.heading,
@@ -81,12 +87,12 @@ class GreedyPolicy(StatelessPolicy):
         self.lookahead = lookahead
 
     def act(self, batch: DroneBatch) -> np.ndarray:
-        sc = Scene.of(batch)
+        sc = Scene.of(batch, self.name)
         chase = turn_towards(sc.heading, sc.target_heading())
         rows = np.arange(len(batch))
         mate_dist = sc.mate_dist
         if self.lookahead:
-            step = batch.core.cfg.players.velocity_p * batch.core.cfg.dt * self.lookahead
+            step = batch.need_poses(self.name).arena.step * self.lookahead
             own = np.stack([np.cos(sc.heading), np.sin(sc.heading)], -1)[:, None]
             theirs = np.stack([np.cos(sc.mate_heading), np.sin(sc.mate_heading)], -1)
             ahead = sc.mate_vec + step * (theirs - own)
@@ -109,18 +115,14 @@ class GreedyPolicy(StatelessPolicy):
         self, heading: np.ndarray, chase_heading: np.ndarray, v: np.ndarray, is_mate: np.ndarray, otherwise: np.ndarray
     ) -> np.ndarray:
         threat_dir = np.arctan2(v[:, 1], v[:, 0])
-        bearing = _wrap(threat_dir - heading)
+        bearing = wrap_angle(threat_dir - heading)
         ahead = np.abs(bearing) < np.pi / 2
-        chase_into = np.abs(_wrap(threat_dir - chase_heading)) < np.pi / 2
-        away = -np.where(bearing >= 0, 1.0, -1.0) * self.avoid_turn / (np.pi / 4)
+        chase_into = np.abs(wrap_angle(threat_dir - chase_heading)) < np.pi / 2
+        away = -np.where(bearing >= 0, 1.0, -1.0) * self.avoid_turn / MAX_TURN
         # Teammates move: always veer off. Obstacles: veer off one ahead; hold course past
         # one beside or behind when the chase would turn back into it.
         hold = np.where(ahead, away, np.where(chase_into, 0.0, otherwise))
         return np.where(is_mate, away, hold)
-
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return np.arctan2(np.sin(angle), np.cos(angle))
 
 
 class VicsekPolicy(StatelessPolicy):
@@ -149,7 +151,7 @@ class VicsekPolicy(StatelessPolicy):
         self.obstacle_range, self.obstacle_gain = obstacle_range, obstacle_gain
 
     def act(self, batch: DroneBatch) -> np.ndarray:
-        sc = Scene.of(batch)
+        sc = Scene.of(batch, self.name)
         th = sc.target_heading()
         v = self.chase * np.stack([np.cos(th), np.sin(th)], -1)
         finite = np.isfinite(sc.mate_dist)
@@ -167,3 +169,39 @@ class VicsekPolicy(StatelessPolicy):
         align = np.stack([(np.cos(mh) * finite).sum(-1), (np.sin(mh) * finite).sum(-1)], -1)
         v += self.alignment * align / np.maximum(n_mates, 1)
         return turn_towards(sc.heading, np.arctan2(v[:, 1], v[:, 0]))
+
+
+_TURNS = np.linspace(-1.0, 1.0, 17)  # candidate actions of chase_nearest's safety filter
+
+
+def chase_nearest(obs: np.ndarray, num_e: int, clearance: float = 0.35) -> np.ndarray:
+    """The default demo policy: steer each pursuer at its nearest visible evader.
+
+    Read from the observation alone (layout of :mod:`atdrone.envs.observation`): the
+    wanted turn is clip(bearing / 45 degrees, -1, 1) towards the nearest unmasked
+    evader block, straight ahead when none is visible. A safety filter then picks,
+    among 17 turns in [-1, 1], the one that best turns the nose away from every
+    obstacle, wall or teammate nearer than ``clearance`` metres (ties: closest to the
+    wanted turn), so demo episodes do not end at the first wall.
+    obs (B, P, obs_dim) of the task's num_e evaders -> actions (B, P), for every
+    pursuer or any P of them.
+    """
+    B, P, _ = obs.shape  # P: the drones steered, every pursuer or some of them
+    E = num_e
+    blocks = obs.reshape(B, P, -1, ENTITY_FEATURES)
+    mask, dist = blocks[..., 0] > 0.5, blocks[..., 1] * DIST_SCALE
+    bearing = np.arctan2(blocks[..., 2], blocks[..., 3])
+
+    ev_dist = np.where(mask[..., :E], dist[..., :E], np.inf)
+    nearest = ev_dist.argmin(-1)[..., None]
+    seen = np.isfinite(np.take_along_axis(ev_dist, nearest, -1)[..., 0])
+    aim = np.take_along_axis(bearing[..., :E], nearest, -1)[..., 0]
+    want = np.where(seen, np.clip(aim / MAX_TURN, -1.0, 1.0), 0.0)
+
+    # The obstacle block (slot E) and the teammate blocks: after turning by a, an entity at
+    # bearing b sits at b - a * MAX_TURN; a near one should end up abeam or behind (cos <= 0).
+    near = mask[..., E:] & (dist[..., E:] < clearance)  # (B, P, M)
+    after = bearing[..., E:, None] - _TURNS * MAX_TURN  # (B, P, M, K)
+    unsafe = (near[..., None] * np.maximum(np.cos(after), 0.0)).sum(-2)  # (B, P, K)
+    cost = unsafe * 10.0 + np.abs(_TURNS - want[..., None])
+    return _TURNS[cost.argmin(-1)] if near.any() else want

@@ -109,16 +109,17 @@ class Match:
             raise RuntimeError("call reset() first")
         env = np.repeat(np.arange(self.core.num_envs), self.num_ctrl)
         slot = self.learner_slots.reshape(-1)
-        return DroneBatch(obs=self._obs[env, slot], env=env, slot=slot, core=self.core)
+        return DroneBatch(obs=self._obs[env, slot], env=env, slot=slot, poses=self.core.poses())
 
     def partner_actions(self, actions: np.ndarray) -> None:
         """Fill the partner slots of ``actions`` (B, num_p) from the partner policies."""
         assert self._obs is not None
+        poses = self.core.poses()
         for m, policy in enumerate(self.partners):
             env, j = np.nonzero(self.members == m)
             if len(env):
                 slot = self.partner_slots[env, j]
-                actions[env, slot] = policy.act(DroneBatch(self._obs[env, slot], env, slot, self.core))
+                actions[env, slot] = policy.act(DroneBatch(self._obs[env, slot], env, slot, poses))
 
     def step(self, learner_actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step with the learners' actions (B, num_ctrl); partners act themselves.

@@ -1,0 +1,157 @@
+"""What a pursuer sees: a poses record in, egocentric observations out (a pure function).
+
+A :class:`Poses` record holds what a motion-capture frame gives (positions,
+headings, which evaders are caught) plus the :class:`Arena` they move in;
+:func:`observe` turns it into the observation every policy reads. The simulator
+(:class:`~atdrone.envs.core.BatchedPursuit`) fills the same record and calls the
+same function, so a drone flying from mocap sees exactly what it saw in training.
+
+Layout (``OBS_LAYOUT_VERSION`` 1), per pursuer, blocks of 4 features
+``[mask, distance / 5, sin(bearing), cos(bearing)]``, bearing from the pursuer's own
+heading (counter-clockwise positive): num_e evader blocks (mask 0 and zeros when the
+evader is captured or beyond reception_range), 1 block for the nearest obstacle or
+wall (mask 1, signed distance), num_p - 1 teammate blocks (mask 0 and zeros beyond
+reception_range). obs_dim = 4 (num_e + num_p).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+
+from atdrone.config import TaskConfig, load_task
+from atdrone.envs.geometry import Geometry, pick_nearest, signed_distances
+
+OBS_LAYOUT_VERSION = 1
+ENTITY_FEATURES = 4
+DIST_SCALE = 5.0
+OBS_BOUND = 1.5  # |feature| never exceeds this: distances / 5 in a 3.6 x 5 arena, sin, cos, masks
+
+
+def obs_dim(num_p: int, num_e: int) -> int:
+    """Length of one pursuer's observation."""
+    return ENTITY_FEATURES * (num_e + num_p)
+
+
+@dataclass(frozen=True)
+class Arena:
+    """The fixed facts of a task that observing and steering need.
+
+    geometry: walls and obstacles; num_p pursuers, num_e evaders; reception_range
+    (metres a pursuer perceives); capture_range; step: metres a pursuer moves a step
+    (velocity_p * dt).
+    """
+
+    geometry: Geometry
+    num_p: int
+    num_e: int
+    reception_range: float
+    capture_range: float
+    step: float
+
+    @classmethod
+    def from_config(cls, cfg: TaskConfig | str) -> Arena:
+        """The arena of a task (a TaskConfig, task name or path)."""
+        cfg = load_task(cfg)
+        return cls(
+            geometry=Geometry.from_config(cfg),
+            num_p=cfg.players.num_p,
+            num_e=cfg.players.num_e,
+            reception_range=cfg.players.reception_range,
+            capture_range=cfg.task.capture_range,
+            step=cfg.players.velocity_p * cfg.dt,
+        )
+
+    @property
+    def num_agents(self) -> int:
+        return self.num_p + self.num_e
+
+    @property
+    def obs_dim(self) -> int:
+        return obs_dim(self.num_p, self.num_e)
+
+
+@dataclass(frozen=True)
+class Poses:
+    """Where every drone of B environments is: a motion-capture frame, batched.
+
+    pos (B, N, 2) metres, pursuers first then evaders; heading (B, N) radians;
+    captured (B, E) bool; arena: the task they play.
+    """
+
+    pos: np.ndarray
+    heading: np.ndarray
+    captured: np.ndarray
+    arena: Arena
+
+    def __post_init__(self) -> None:
+        n, e = self.arena.num_agents, self.arena.num_e
+        b = self.pos.shape[0] if self.pos.ndim == 3 else -1
+        for name, arr, shape in (
+            ("pos", self.pos, (b, n, 2)),
+            ("heading", self.heading, (b, n)),
+            ("captured", self.captured, (b, e)),
+        ):
+            if arr.shape != shape:
+                raise ValueError(f"Poses.{name} must have shape (B, {', '.join(map(str, shape[1:]))}), got {arr.shape}")
+
+    @property
+    def num_envs(self) -> int:
+        return self.pos.shape[0]
+
+
+@cache
+def _layout(num_p: int, num_e: int) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """(rows, cols) into (P, N) pairwise arrays picking each pursuer's evaders then
+    teammates, and the observation blocks they fill (the obstacle block sits between)."""
+    others = np.array([[j for j in range(num_p) if j != i] for i in range(num_p)], dtype=np.intp)
+    others = others.reshape(num_p, num_p - 1)
+    ev = np.arange(num_p, num_p + num_e)[None].repeat(num_p, 0)
+    index = (np.arange(num_p)[:, None], np.concatenate([ev, others], 1))
+    slots = np.r_[np.arange(num_e), np.arange(num_e + 1, num_e + num_p)]
+    return index, slots
+
+
+def _relative(pos_from: np.ndarray, heading: np.ndarray, pos_to: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Distance, sin and cos of the bearing from each ``from`` to each ``to``.
+
+    pos_from (B, P, 2), heading (B, P), pos_to (B, M, 2) -> three (B, P, M) arrays.
+    """
+    dx = pos_to[:, None, :, 0] - pos_from[:, :, None, 0]
+    dy = pos_to[:, None, :, 1] - pos_from[:, :, None, 1]
+    dist = np.sqrt(dx * dx + dy * dy)
+    inv = 1.0 / np.maximum(dist, 1e-12)
+    hx, hy = np.cos(heading)[..., None], np.sin(heading)[..., None]
+    return dist, (hx * dy - hy * dx) * inv, (hx * dx + hy * dy) * inv
+
+
+def observe(poses: Poses, obstacles: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Observations (B, num_p, obs_dim) float32 of every pursuer in ``poses`` (layout above).
+
+    ``obstacles``: the pursuers' signed distances and normals
+    (:func:`~atdrone.envs.geometry.signed_distances`), when already known.
+    """
+    a = poses.arena
+    P, E, B = a.num_p, a.num_e, poses.pos.shape[0]
+    pos_p, head_p = poses.pos[:, :P], poses.heading[:, :P]
+    d, sn, cs = _relative(pos_p, head_p, poses.pos)  # (B, P, N)
+    mask = d <= a.reception_range
+    mask[:, :, P:] &= ~poses.captured[:, None, :]
+    od, on = obstacles if obstacles is not None else signed_distances(pos_p, a.geometry)
+    o_d, o_n = pick_nearest(od, on)
+    hx, hy = np.cos(head_p), np.sin(head_p)
+    tx, ty = -o_n[..., 0], -o_n[..., 1]  # towards the obstacle
+    out = np.empty((B, P, E + P, ENTITY_FEATURES), dtype=np.float32)
+    (rows, ents), slots = _layout(P, E)
+    m = mask[:, rows, ents]
+    out[:, :, slots, 0] = m
+    out[:, :, slots, 1] = d[:, rows, ents] * (m / DIST_SCALE)
+    out[:, :, slots, 2] = sn[:, rows, ents] * m
+    out[:, :, slots, 3] = cs[:, rows, ents] * m
+    out[:, :, E, 0] = 1.0
+    out[:, :, E, 1] = o_d / DIST_SCALE
+    out[:, :, E, 2] = hx * ty - hy * tx
+    out[:, :, E, 3] = hx * tx + hy * ty
+    return out.reshape(B, P, obs_dim(P, E))
