@@ -226,8 +226,9 @@ def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> 
     model, header = load_checkpoint(path)
     tracker.log_model(model, name=f"atdrone-{cfg.name}", alias="champion", tags={"member": best})
     if cfg.gif:
-        from atdrone.envs.render import record_episode, save_gif
+        from atdrone.envs.render import save_gif
         from atdrone.policies.neural import NeuralPolicy
+        from atdrone.teams.replay import record_episode
 
         policy = NeuralPolicy(model, name=best)
         frames, _ = record_episode(cfg.task, seed=cfg.seed, policy=policy, frame_every=4, max_steps=400)
