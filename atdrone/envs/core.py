@@ -9,10 +9,11 @@ Description
 
 Action Space
     (num_envs, num_p) floats, clipped to [-1, 1]: heading += a * pi/4, then the drone
-    moves velocity_p * dt along its new heading.
+    moves velocity_p * dt along its new heading (:mod:`atdrone.envs.kinematics`).
 
 Observation Space
-    (num_envs, num_p, obs_dim) float32, egocentric, ``OBS_LAYOUT_VERSION`` 1. Entities
+    (num_envs, num_p, obs_dim) float32, egocentric, ``OBS_LAYOUT_VERSION`` 1: the pure
+    :func:`atdrone.envs.observation.observe` of the poses record :meth:`BatchedPursuit.poses`. Entities
     are blocks of 4 features ``[mask, distance / 5, sin(bearing), cos(bearing)]``,
     the bearing measured from the pursuer's own heading (counter-clockwise positive):
       - num_e evader blocks (evader index order); mask 0 and zeros when the evader is
