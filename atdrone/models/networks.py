@@ -22,7 +22,9 @@ moved, and the hidden layers read the past actions. New inputs always come last,
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -31,6 +33,10 @@ from torch.nn import functional as F
 
 from atdrone.envs.core import DIST_SCALE, ENTITY_FEATURES, PursuitState
 from atdrone.envs.geometry import Geometry
+from atdrone.models.history import DroneMemory, ObsHistory, StatelessMemory
+
+if TYPE_CHECKING:
+    from atdrone.models.architectures import PolicyModel
 
 GLOBAL_PURSUER_FEATURES = 4  # x / width, y / height, sin heading, cos heading
 GLOBAL_EVADER_FEATURES = 3  # x / width, y / height, active
@@ -170,10 +176,25 @@ class ActorCritic(nn.Module):
         self.critic = EntityTrunk(self.cfg, extra=extra)
         self.value_head = _layer(self.cfg.hidden, 1, gain=1.0)
 
-    def architecture(self) -> dict[str, object]:
+    @classmethod
+    def from_architecture(cls, config: Mapping[str, Any]) -> ActorCritic:
+        """The network of a header's architecture entry (NetConfig fields; absent ones take defaults)."""
+        return cls(NetConfig(**config))
+
+    @property
+    def centralised(self) -> bool:
+        return self.global_encoder is not None
+
+    def architecture(self) -> dict[str, Any]:
         return {"class": "ActorCritic", **asdict(self.cfg)}
 
-    def widen_from(self, other: ActorCritic) -> None:
+    def memory(self, num_envs: int, num_keys: int, obs_dim: int) -> DroneMemory:
+        """Past frames and actions when the network reads them (``history`` > 0), else the observation alone."""
+        if self.cfg.history:
+            return ObsHistory(self.cfg.history, num_envs, num_keys, obs_dim)
+        return StatelessMemory(obs_dim)
+
+    def widen_from(self, other: PolicyModel) -> None:
         """Take a narrower model's weights: a decentralised critic, fewer past frames.
 
         Every parameter is copied; where this model has more inputs (the global state
@@ -181,6 +202,8 @@ class ActorCritic(nn.Module):
         weights, so actions and values start exactly as ``other``'s and the new inputs
         are learned from there.
         """
+        if not isinstance(other, ActorCritic):
+            raise ValueError(f"widen_from takes an ActorCritic, not {type(other).__name__}")
         if other.global_encoder is not None and self.global_encoder is None:
             raise ValueError("widen_from cannot drop a centralised critic")
         if other.cfg.history > self.cfg.history:

@@ -36,7 +36,7 @@ def tensor_digest(tensors: Mapping[str, torch.Tensor]) -> str:
     for name in sorted(tensors):
         t = tensors[name].detach().cpu().contiguous()
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")  # 0-dim too
     return h.hexdigest()
 
 
@@ -62,7 +62,9 @@ def decode(data: bytes, source: str = "<bytes>") -> tuple[dict[str, torch.Tensor
     return tensors, document
 
 
-def save_tensors(path: str | os.PathLike[str], tensors: Mapping[str, torch.Tensor], document: Mapping[str, Any]) -> Path:
+def save_tensors(
+    path: str | os.PathLike[str], tensors: Mapping[str, torch.Tensor], document: Mapping[str, Any]
+) -> Path:
     """Write ``tensors`` and ``document`` to ``path`` atomically."""
     return atomic_write_bytes(path, encode(tensors, document))
 
