@@ -1,14 +1,19 @@
-"""Policy checkpoints: a torch state_dict behind a human-readable JSON header.
+"""Policy checkpoints: a network's tensors behind a human-readable JSON header.
 
 File layout (one file, ``*.pt``):
-    line 1  ``ATDRONE-CHECKPOINT 1``
-    line 2  the header, one line of JSON: format, architecture, obs_layout_version,
-            task, num_p, num_e, algorithm, config, seed, step, git_commit, metrics,
-            created, sha256 (of the payload)
-    rest    the payload: ``torch.save`` of the state_dict
+    line 1  ``ATDRONE-CHECKPOINT 1`` (the container; the header's ``format`` names the payload)
+    line 2  the header, one line of JSON: format, architecture ({"class": name, **config},
+            see :mod:`atdrone.models.architectures`), obs_layout_version, task, num_p,
+            num_e, algorithm, config, seed, step, git_commit, metrics, created, sha256
+            (of the payload bytes)
+    rest    the payload: format 2, the state_dict as a tensor file
+            (:mod:`atdrone.models.tensorfile`, safetensors with its own digest);
+            format 1 (legacy, older runs), ``torch.save`` of the state_dict.
 ``head -2 file.pt`` shows the provenance. Files are written to a temp name and
 renamed. Loading checks the magic line, the header, the sha256 and the observation
 layout, and refuses a mismatched or corrupted file with a :class:`CheckpointError`.
+Format 2 loads without unpickling anything; format 1 goes through
+``torch.load(weights_only=True)``, which unpickles tensors only.
 """
 
 from __future__ import annotations
@@ -22,17 +27,18 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
 from atdrone.envs.core import OBS_LAYOUT_VERSION
 from atdrone.fileio import atomic_write_bytes
-from atdrone.models.networks import ActorCritic, NetConfig
+from atdrone.models.architectures import CheckpointError, PolicyModel, build_model
+from atdrone.models.tensorfile import TensorFileError, decode, encode
+
+__all__ = ["FORMAT", "MAGIC", "REQUIRED", "CheckpointError", "load_checkpoint", "read_header", "save_checkpoint"]
 
 MAGIC = b"ATDRONE-CHECKPOINT 1\n"
+FORMAT = 2  # the payload format written; 1 (torch.save) is still read
 REQUIRED = ("architecture", "obs_layout_version", "task", "num_p", "num_e", "sha256")
-
-
-class CheckpointError(ValueError):
-    """A checkpoint file is corrupted, truncated or does not fit what it is loaded for."""
 
 
 def git_commit() -> str:
@@ -46,18 +52,26 @@ def git_commit() -> str:
         return "unknown"
 
 
-def save_checkpoint(path: str | Path, model: ActorCritic, header: dict[str, Any]) -> dict[str, Any]:
-    """Write ``model``'s weights with ``header`` (task, num_p, num_e, ... ) to ``path``."""
-    buf = io.BytesIO()
-    torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, buf)
-    payload = buf.getvalue()
+def _module(model: PolicyModel) -> nn.Module:
+    if not isinstance(model, nn.Module):
+        raise TypeError(f"a checkpoint holds a torch nn.Module, not {type(model).__name__}")
+    return model
+
+
+def save_checkpoint(path: str | Path, model: PolicyModel, header: dict[str, Any]) -> dict[str, Any]:
+    """Write ``model``'s weights with ``header`` (task, num_p, num_e, ...) to ``path``; the full header.
+
+    ``header`` may override git_commit and created (e.g. when re-writing an old file);
+    format, architecture and sha256 always describe what is written.
+    """
+    payload = encode(_module(model).state_dict(), {})
     full = {
-        "format": 1,
-        "architecture": model.architecture(),
         "obs_layout_version": OBS_LAYOUT_VERSION,
         "git_commit": git_commit(),
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         **header,
+        "format": FORMAT,
+        "architecture": model.architecture(),
         "sha256": hashlib.sha256(payload).hexdigest(),
     }
     missing = [k for k in REQUIRED if k not in full]
@@ -68,7 +82,7 @@ def save_checkpoint(path: str | Path, model: ActorCritic, header: dict[str, Any]
 
 
 def read_header(path: str | Path) -> dict[str, Any]:
-    """The JSON header of a checkpoint, without loading the weights."""
+    """The JSON header of a checkpoint, without loading the weights (the sha256 is checked)."""
     return _read(path)[0]
 
 
@@ -90,12 +104,32 @@ def _read(path: str | Path) -> tuple[dict[str, Any], bytes]:
         raise CheckpointError(f"{path}: header lacks one of {list(REQUIRED)}")
     payload = data[end + 1 :]
     if hashlib.sha256(payload).hexdigest() != header["sha256"]:
-        raise CheckpointError(f"{path}: corrupted weights (sha256 mismatch with the header)")
+        raise CheckpointError(f"{path}: corrupted or truncated weights (sha256 mismatch with the header)")
     return header, payload
 
 
-def load_checkpoint(path: str | Path, expect_task: str | None = None) -> tuple[ActorCritic, dict[str, Any]]:
-    """Model and header of a checkpoint; CheckpointError when it does not fit."""
+def _tensors(path: Path, header: dict[str, Any], payload: bytes) -> dict[str, torch.Tensor]:
+    """The state_dict in ``payload``, by the header's format."""
+    fmt = header.get("format", 1)
+    if fmt == 2:
+        try:
+            return decode(payload, str(path))[0]
+        except TensorFileError as exc:
+            raise CheckpointError(str(exc)) from None
+    if fmt == 1:  # legacy: torch.save, read back with the tensors-only unpickler
+        try:
+            state = torch.load(io.BytesIO(payload), weights_only=True, map_location="cpu")
+        except Exception as exc:  # torch raises several kinds for a bad pickle
+            raise CheckpointError(f"{path}: unreadable format 1 weights: {type(exc).__name__}: {exc}") from None
+        if not isinstance(state, dict):
+            raise CheckpointError(f"{path}: format 1 weights are not a state_dict")
+        return state
+    raise CheckpointError(f"{path}: unknown checkpoint format {fmt!r} (this atdrone reads 1 and 2)")
+
+
+def load_checkpoint(path: str | Path, expect_task: str | None = None) -> tuple[PolicyModel, dict[str, Any]]:
+    """Model (in eval mode) and header of a checkpoint; CheckpointError when it does not fit."""
+    path = Path(path)
     header, payload = _read(path)
     if header["obs_layout_version"] != OBS_LAYOUT_VERSION:
         raise CheckpointError(
@@ -103,14 +137,16 @@ def load_checkpoint(path: str | Path, expect_task: str | None = None) -> tuple[A
         )
     if expect_task is not None and header["task"] != expect_task:
         raise CheckpointError(f"{path}: trained on task {header['task']!r}, expected {expect_task!r}")
-    arch = dict(header["architecture"])
-    if arch.pop("class", None) != "ActorCritic":
-        raise CheckpointError(f"{path}: unknown architecture {header['architecture']!r}")
+    if not isinstance(header["architecture"], dict):
+        raise CheckpointError(f"{path}: the header's architecture is not a JSON object")
     try:
-        model = ActorCritic(NetConfig(**arch))
-        state = torch.load(io.BytesIO(payload), weights_only=True, map_location="cpu")
-        model.load_state_dict(state)
+        model = build_model(header["architecture"])
+    except CheckpointError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    module = _module(model)
+    try:
+        module.load_state_dict(_tensors(path, header, payload))
     except (TypeError, RuntimeError, KeyError) as exc:
         raise CheckpointError(f"{path}: weights do not match the architecture in the header: {exc}") from None
-    model.eval()
+    module.eval()
     return model, header

@@ -1,4 +1,8 @@
-"""A trained network as a policy: acts on observations with per-drone memory."""
+"""A trained network as a policy: acts on observations with per-drone memory.
+
+The policy needs no simulator: it acts on an observation array with (env, key) memory
+keys, and the task shape (pursuers, evaders) comes from the checkpoint header.
+"""
 
 from __future__ import annotations
 
@@ -7,59 +11,102 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from atdrone.envs.core import ENTITY_FEATURES
+from atdrone.models.architectures import PolicyModel
 from atdrone.models.checkpoint import load_checkpoint
-from atdrone.models.history import ObsHistory
-from atdrone.models.networks import ActorCritic
-from atdrone.policies.base import DroneBatch
+from atdrone.models.history import DroneMemory
+from atdrone.policies.base import DroneBatch, PolicyError
 
 
 class NeuralPolicy:
     """A trained actor as a zoo policy: batched, mean action by default.
 
-    A network that reads past frames (``history`` > 0) keeps them per (env, slot) and
-    forgets an environment's drones when its episode ends (:meth:`reset`).
+    ``num_p`` and ``num_e`` are the task shape the network was trained on (from the
+    checkpoint header; the default is the paper's 4p2e tasks). The network pools
+    evaders, so it also flies a task with the same team and another number of evaders:
+    the evader count is read off the observation width, 4 * (num_p + num_e).
+    Per-drone memory (``model.memory``) is keyed by (env, key), grows with the keys it
+    is handed, and forgets an environment's drones when its episode ends (:meth:`reset`).
     """
 
-    def __init__(self, model: ActorCritic, name: str = "neural", deterministic: bool = True, seed: int = 0) -> None:
+    def __init__(
+        self,
+        model: PolicyModel,
+        name: str = "neural",
+        deterministic: bool = True,
+        seed: int = 0,
+        num_p: int = 4,
+        num_e: int = 2,
+    ) -> None:
         self.model = model
         self.name = name
         self.deterministic = deterministic
+        self.num_p = num_p
+        self.num_e = num_e
         self.generator = torch.Generator().manual_seed(seed)
-        self.memory: ObsHistory | None = None
+        self.memory: DroneMemory | None = None
+        self._obs_dim = 0
+
+    def evaders(self, obs_dim: int) -> int:
+        """Evaders in an observation of width ``obs_dim`` for this policy's team of ``num_p``."""
+        blocks, rest = divmod(obs_dim, ENTITY_FEATURES)
+        if rest or blocks <= self.num_p:
+            raise PolicyError(
+                f"policy {self.name!r} ({self.num_p} pursuers, trained with {self.num_e} evaders) cannot read "
+                f"observations of width {obs_dim} (expected {ENTITY_FEATURES * (self.num_p + self.num_e)})"
+            )
+        return blocks - self.num_p
 
     def reset(self, done: np.ndarray) -> None:
-        """Forget the past frames of the environments where ``done`` is true."""
-        if self.memory is not None:
-            if len(done) == self.memory.shape[0]:
-                self.memory.reset(done)
-            else:  # a new batch of environments
-                self.memory = None
+        """Forget the memory of the environments where ``done`` (one entry per environment row) is true."""
+        if self.memory is None:
+            return
+        done = np.asarray(done, dtype=bool)
+        if done.all():  # nothing left to remember: the next batch may be another size
+            self.memory = None
+        else:
+            self.memory.reset(done)
+
+    def inputs_of(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray) -> np.ndarray:
+        """Network inputs (M, input_dim) of observations (M, D) of drones (env, key), from their memory."""
+        env, key = np.asarray(env), np.asarray(key)
+        D = obs.shape[-1]
+        if self.memory is None or self._obs_dim != D:
+            size = (int(env.max()) + 1, int(key.max()) + 1) if len(env) else (0, 0)
+            self.memory, self._obs_dim = self.model.memory(*size, D), D
+        return self.memory.inputs(obs, env, key)
 
     def inputs(self, batch: DroneBatch) -> np.ndarray:
         """Network inputs of ``batch``: its observations, with past frames when the network reads them."""
-        h = self.model.cfg.history
-        if not h:
-            return np.ascontiguousarray(batch.obs)
-        core = batch.core
-        if self.memory is None or self.memory.shape != (core.num_envs, core.num_p, core.obs_dim):
-            self.memory = ObsHistory(h, core.num_envs, core.num_p, core.obs_dim)
-        return self.memory.augment(batch.obs, batch.env, batch.slot)
+        return self.inputs_of(batch.obs, batch.env, batch.slot)
 
     @torch.no_grad()
-    def act(self, batch: DroneBatch) -> np.ndarray:
-        if len(batch) == 0:
+    def act_obs(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray) -> np.ndarray:
+        """Actions (M,) in [-1, 1] for observations (M, D) of drones with memory keys (env (M,), key (M,))."""
+        if len(obs) == 0:
             return np.zeros(0)
-        dist = self.model.dist(torch.from_numpy(self.inputs(batch)), batch.core.num_e)
+        env, key = np.asarray(env), np.asarray(key)
+        dist = self.model.dist(torch.from_numpy(self.inputs_of(obs, env, key)), self.evaders(obs.shape[-1]))
         u = dist.mean
         if not self.deterministic:
             u = u + dist.stddev * torch.randn(u.shape, generator=self.generator)
         actions = torch.tanh(u).numpy().astype(np.float64)
-        if self.memory is not None:
-            self.memory.record(batch.obs, batch.env, batch.slot, actions)
+        assert self.memory is not None  # made by inputs_of
+        self.memory.record(obs, env, key, actions)
         return actions
+
+    def act(self, batch: DroneBatch) -> np.ndarray:
+        """Actions (M,) for the drones of ``batch``: its observations, keyed by (env, slot)."""
+        return self.act_obs(batch.obs, batch.env, batch.slot)
 
 
 def load_policy(path: str | Path, deterministic: bool = True) -> NeuralPolicy:
-    """A checkpoint as a policy in the zoo interface."""
+    """A checkpoint as a policy in the zoo interface, with the task shape of its header."""
     model, header = load_checkpoint(path)
-    return NeuralPolicy(model, name=header.get("name", Path(path).stem), deterministic=deterministic)
+    return NeuralPolicy(
+        model,
+        name=header.get("name", Path(path).stem),
+        deterministic=deterministic,
+        num_p=int(header["num_p"]),
+        num_e=int(header["num_e"]),
+    )
