@@ -440,6 +440,25 @@ class Registry:
                 (_now(), _dumps(merged), run, idx),
             )
 
+    def discard_generations(self, run: str, start: int) -> int:
+        """Delete ``run``'s members, matches and generation rows from generation ``start`` on.
+
+        A resumed service run calls this for the generation it repeats, so a generation
+        killed half-way leaves no rows behind; match ids continue from the highest one
+        kept, so the repeated generation's rows come out exactly as the first time.
+        Returns the number of rows deleted.
+        """
+        _check_text("run", run)
+        start = _check_int("start", start)
+        with self._write() as conn:
+            deleted = 0
+            for table, column in (("members", "generation"), ("matches", "generation"), ("generations", "idx")):
+                deleted += conn.execute(f"DELETE FROM {table} WHERE run = ? AND {column} >= ?", (run, start)).rowcount
+            conn.execute(
+                "UPDATE sqlite_sequence SET seq = (SELECT COALESCE(MAX(id), 0) FROM matches) WHERE name = 'matches'"
+            )
+        return deleted
+
     def generations(self, run: str | None = None) -> pd.DataFrame:
         """The generations, by run and index; ``finished`` is None for one still running (or interrupted)."""
         where, params = self._where(run=run)

@@ -93,13 +93,13 @@ def test_neural_policy_remembers_per_slot_and_forgets_at_episode_end():
     policy = NeuralPolicy(_trained_model(history=1))
     core = BatchedPursuit("4p2e1o", num_envs=2, seed=1)
     obs = core.reset(seed=1)
-    batch = DroneBatch.all_slots(core, obs)
+    batch = DroneBatch.all_slots(obs)
     first = policy.act(batch)
     assert policy.memory is not None
     np.testing.assert_array_equal(policy.memory.obs[:, :, 0], obs)
     np.testing.assert_allclose(policy.memory.actions[:, :, 0], first.reshape(2, 4), rtol=1e-6)
     obs2 = core.step(first.reshape(2, 4))[0]
-    again = DroneBatch.all_slots(core, obs2)
+    again = DroneBatch.all_slots(obs2)
     inputs = policy.inputs(again)
     np.testing.assert_array_equal(inputs[:, core.obs_dim : 2 * core.obs_dim], obs.reshape(8, -1))
     policy.reset(np.array([True, False]))

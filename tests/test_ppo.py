@@ -94,7 +94,7 @@ def test_checkpoint_round_trips_to_identical_actions(tmp_path):
     policy = load_policy(path)
     env = BatchedPursuit("4p2e1o", num_envs=8, seed=3)
     obs = env.reset()
-    batch = DroneBatch.all_slots(env, obs)
+    batch = DroneBatch.all_slots(obs)
     with torch.no_grad():
         direct = torch.tanh(model.dist(torch.from_numpy(batch.obs), 2).mean).numpy()
     np.testing.assert_array_equal(policy.act(batch), direct)
@@ -108,7 +108,7 @@ def test_loaded_checkpoint_works_for_three_evaders(tmp_path):
     save_checkpoint(path, _trained_model(), _header())
     policy = load_policy(path)
     env = BatchedPursuit("4p3e5o", num_envs=2, seed=0)
-    actions = policy.act(DroneBatch.all_slots(env, env.reset()))
+    actions = policy.act(DroneBatch.all_slots(env.reset()))
     assert actions.shape == (8,) and np.all(np.abs(actions) <= 1)
 
 

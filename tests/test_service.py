@@ -18,14 +18,11 @@ TINY = {
     "task": "4p2e1o",
     "updates_per_generation": 1,
     "num_workers": 2,
-    "envs_per_worker": 4,
-    "rollout_steps": 16,
     "eval_episodes": 4,
-    "population_size": 3,
     "final_zoo": "zoo1",
     "final_episodes": 4,
     "gif": False,
-    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64},
+    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
 }
 
 
@@ -42,7 +39,7 @@ def _cfg(tmp_path, name, **kw):
 
 def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    cfg = _cfg(tmp_path, "hola_t", algorithm="hola", generations=3)
+    cfg = _cfg(tmp_path, "hola_t", algorithm="hola", generations=3, hola={"population_size": 3})
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     reg = Registry(tmp_path / "hola_t" / "registry.db")
     members = reg.members(run="hola_t")
@@ -58,7 +55,13 @@ def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
     assert [sorted(t) for t in matches["team"]] == [sorted([g1, g1, g0, g0])]
     assert set(matches["generation"]) == {2}
     report = summary["reports"][2]
-    assert set(report["rho"]) == {g0, g1} and abs(sum(report["rho"].values()) - 1) < 1e-9
+    graph = report.documents["hypergraph.json"]
+    assert set(graph["rho"]) == {g0, g1} and abs(sum(graph["rho"].values()) - 1) < 1e-9
+    # the learner trained with exactly the draws the rollout recorded: profiles of rho's members only
+    (trained,) = report.training
+    assert trained.partners["members"] == list(graph["rho"]) and sum(trained.drawn.values()) > 0
+    assert all(set(profile.split("|")) <= {g0, g1} for profile in trained.drawn)
+    assert graph["drawn_profiles"] == trained.drawn
     assert list(summary["population"]["member"]) == [g0, g1, g2]
     assert {"zoo1_SUC", "zoo1_COL", "zoo1_AST", "zoo1_REW"} <= set(summary["population"].columns)
 
@@ -93,27 +96,29 @@ def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
 
 
 def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp_path):
+    from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.experiment import registry_name
 
-    cfg = _cfg(tmp_path, "kill_t", algorithm="sp", generations=1, updates_per_generation=6, rollout_steps=64)
+    ppo = {**TINY["ppo"], "rollout_steps": 64}
+    cfg = _cfg(tmp_path, "kill_t", algorithm="sp", generations=1, updates_per_generation=6, ppo=ppo)
     registry = registry_actor(tmp_path / "kill.db", name=registry_name(cfg.name))
-    coordinator = Coordinator.remote(cfg, str(tmp_path / "kill_t"), None, registry)
+    coordinator = Coordinator.remote(cfg, ALGORITHMS["sp"], str(tmp_path / "kill_t"), None, registry)
     pids = ray.get(coordinator.worker_pids.remote())
     workers = ray.get(coordinator.workers_handles.remote())
     pending = coordinator.run_generation.remote()
     time.sleep(4.0)
     ray.kill(workers[0], no_restart=False)
     report = ray.get(pending, timeout=240)
-    assert len(report["history"][report["learners"][0]]) == 6  # every update got its fragments
+    assert len(report.training[0].history) == 6  # every update got its fragments
     new_pids = ray.get(coordinator.worker_pids.remote())
     assert new_pids[0] != pids[0] and new_pids[1] == pids[1]
 
 
 def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    cfg = _cfg(tmp_path, "resume_t", algorithm="hola", generations=3)
+    cfg = _cfg(tmp_path, "resume_t", algorithm="hola", generations=3, hola={"population_size": 3})
     first = run_experiment(cfg, tracking_uri=uri, progress=False, stop_after=2)
     assert first["stopped"]
     run_dir = tmp_path / "resume_t"
@@ -121,11 +126,11 @@ def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path
     reg = Registry(run_dir / "registry.db")
     before = reg.members(run="resume_t").set_index("id")
     assert saved["coordinator"]["generation"] == 2
-    assert saved["coordinator"]["population"] == list(before.index)
+    assert saved["coordinator"]["algorithm"]["population"] == list(before.index)
     with pytest.raises(FileExistsError):
         run_experiment(cfg, tracking_uri=uri, progress=False)
     second = run_experiment(cfg, tracking_uri=uri, resume=True, progress=False)
-    assert [r["generation"] for r in second["reports"]] == [2]
+    assert [r.generation for r in second["reports"]] == [2]
     after = reg.members(run="resume_t").set_index("id")
     # what was saved is untouched: same members, same checkpoints byte for byte
     assert list(after.index[:2]) == list(before.index)
@@ -133,29 +138,33 @@ def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path
         assert after.loc[member, "sha256"] == before.loc[member, "sha256"]
         assert read_header(after.loc[member, "checkpoint"])["sha256"] == before.loc[member, "sha256"]
     # the resumed generation warm-started from the saved learner and continued its lineage
-    (g2,) = second["reports"][0]["learners"]
+    (g2,) = second["reports"][0].learners
     assert after.loc[g2, "parents"] == [before.index[-1]]
     assert second["mlflow_run_id"] == first["mlflow_run_id"]
 
 
 def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    cfg = _cfg(tmp_path, "pbt_t", algorithm="pbt", generations=2, population_size=2, final_zoo="")
+    cfg = _cfg(tmp_path, "pbt_t", algorithm="pbt", generations=2, pbt={"population_size": 2}, final_zoo="")
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     first, second = summary["reports"]
+    pbt = first.documents["pbt.json"]
     # generation 0 spreads the hyperparameters; the worst member then continues from the best one's weights
-    lrs = sorted(h["lr"] for h in first["hparams"].values())
+    lrs = sorted(pbt["hparams"][m]["lr"] for m in first.learners)
     assert lrs[0] < lrs[1]
-    ((loser, winner),) = first["exploited"].items()
-    assert first["fitness"][loser] <= first["fitness"][winner]
+    ((loser, winner),) = pbt["exploited"].items()
+    assert pbt["fitness"][loser] <= pbt["fitness"][winner]
     reg = Registry(tmp_path / "pbt_t" / "registry.db")
     members = reg.members(run="pbt_t").set_index("id")
     assert len(members) == 4 and sorted(members["generation"]) == [0, 0, 1, 1]
     # every generation-1 member descends from a generation-0 member
-    assert all(members.loc[m, "parents"][0] in first["learners"] for m in second["learners"])
+    assert all(members.loc[m, "parents"][0] in first.learners for m in second.learners)
 
-    br = _cfg(tmp_path, "br_t", algorithm="br", zoo="zoo1", generations=1, final_zoo="zoo1")
+    br = _cfg(tmp_path, "br_t", algorithm="br", br={"zoo": "zoo1"}, generations=1, final_zoo="zoo1")
     summary = run_experiment(br, tracking_uri=uri, progress=False)
-    (member,) = summary["reports"][0]["learners"]
+    (member,) = summary["reports"][0].learners
+    # the best response trained with zoo partners, as the rollout recorded them
+    (trained,) = summary["reports"][0].training
+    assert all(p.startswith("zoo1:") for profile in trained.drawn for p in profile.split("|"))
     assert read_header(tmp_path / "br_t" / "members" / f"{member}.pt")["algorithm"] == "br"
     assert summary["population"].loc[0, "zoo1_SUC"] >= 0.0

@@ -15,7 +15,8 @@ import torch
 from torch import nn
 
 from atdrone.config import ConfigError, parse_document
-from atdrone.models.networks import ActorCritic, NetConfig, squash_log_prob
+from atdrone.models import PolicyModel
+from atdrone.models.networks import NetConfig, squash_log_prob
 
 
 @dataclass(frozen=True)
@@ -142,7 +143,7 @@ def learning_rate(cfg: PPOConfig, progress: float) -> float:
 
 
 def ppo_update(
-    model: ActorCritic,
+    model: PolicyModel,
     optimizer: torch.optim.Optimizer,
     batch: dict[str, np.ndarray],
     cfg: PPOConfig,

@@ -1,15 +1,20 @@
 """Rollout collection on the batched simulator: learners (a torch actor) + partners.
 
 A :class:`RolloutWorker` owns a BatchedPursuit and a Match that fills the learner
-slots with the current network and the rest with partner policies (and keeps the
-learners' past frames when the network reads them). ``collect``
-returns a :class:`Fragment` of plain arrays (no torch objects), so fragments can
-travel between processes; weights come in as a state_dict.
+slots with the current network and the rest with partner policies drawn per
+environment and per episode by the sampler it is given (and keeps the learners'
+per-drone memory). ``collect`` returns a :class:`Fragment` of plain arrays (no torch
+objects), so fragments can travel between processes; weights come in as a state_dict.
+Besides observations, actions and rewards a fragment carries ``extras`` for algorithms
+that need more (the learners' slots, the partners' member indices and the turns the
+partners actually executed), and every finished episode names its partners, so what
+was drawn is what is reported (:attr:`RolloutWorker.drawn`).
 """
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,18 +24,24 @@ import torch
 
 from atdrone.config import TaskConfig
 from atdrone.envs.core import DONE_REASONS, TIMEOUT, BatchedPursuit
-from atdrone.learn.ppo import gae
-from atdrone.models.history import ObsHistory, input_dim
-from atdrone.models.networks import ActorCritic, NetConfig, global_state, squash_log_prob
+from atdrone.learn.ppo import PPOConfig, gae
+from atdrone.models import build_model
+from atdrone.models.networks import global_state, squash_log_prob
 from atdrone.policies.base import Policy
 from atdrone.teams.match import Match, PartnerSampler
 
 
 @dataclass
 class Fragment:
-    """T steps of B environments with k learner drones each (arrays, time-major)."""
+    """T steps of B environments with k learner drones each (arrays, time-major).
 
-    obs: np.ndarray  # (T, B, k, D) float32 network inputs (with past frames when the network reads them)
+    ``extras``: per environment step (T, B, ...) arrays an algorithm may need beyond
+    PPO's: ``learner_slots`` (T, B, k), and with partners ``partner_members`` and
+    ``partner_actions`` (T, B, num_partners), the member index and executed turn of
+    every partner slot.
+    """
+
+    obs: np.ndarray  # (T, B, k, D) float32 network inputs (with the drones' memory when the network reads it)
     u: np.ndarray  # (T, B, k) pre-squash actions
     logp: np.ndarray  # (T, B, k)
     values: np.ndarray  # (T, B, k)
@@ -40,14 +51,19 @@ class Fragment:
     state: np.ndarray | None = None  # (T, B, S) global state for a centralised critic
     episodes: list[dict[str, Any]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def samples(self) -> int:
         """Learner drone-steps in the fragment."""
         return int(np.prod(self.u.shape))
 
-    def batch(self, gamma: float, lam: float) -> dict[str, np.ndarray]:
-        """Flat PPO batch (N = T * B * k) with advantages and returns."""
+    def batch(self, gamma: float, lam: float, extras: bool = False) -> dict[str, np.ndarray]:
+        """Flat PPO batch (N = T * B * k) with advantages and returns.
+
+        With ``extras`` every extra array is broadcast to each learner of its environment
+        step and flattened to (N, ...), under its own name.
+        """
         dones = np.broadcast_to(self.dones[..., None], self.rewards.shape).astype(np.float32)
         adv, ret = gae(self.rewards, self.values, dones, self.last_values, gamma, lam)
         out = {
@@ -57,10 +73,13 @@ class Fragment:
             "adv": adv.reshape(-1),
             "ret": ret.reshape(-1),
         }
-        if self.state is not None:
-            k = self.u.shape[-1]
-            st = np.broadcast_to(self.state[:, :, None, :], (*self.state.shape[:2], k, self.state.shape[-1]))
-            out["state"] = st.reshape(-1, self.state.shape[-1])
+        per_env = {"state": self.state} if self.state is not None else {}
+        if extras:
+            per_env.update(self.extras)
+        T, B, k = self.u.shape
+        for name, value in per_env.items():
+            wide = np.broadcast_to(value[:, :, None], (T, B, k, *value.shape[2:]))
+            out[name] = wide.reshape(T * B * k, *value.shape[2:])
         return out
 
 
@@ -80,6 +99,7 @@ def concat_fragments(fragments: Sequence[Fragment]) -> Fragment:
         state=cat("state", 1) if fragments[0].state is not None else None,
         episodes=[e for f in fragments for e in f.episodes],
         timings={k: sum(f.timings.get(k, 0.0) for f in fragments) for k in fragments[0].timings},
+        extras={k: np.concatenate([f.extras[k] for f in fragments], 1) for k in fragments[0].extras},
     )
 
 
@@ -104,52 +124,54 @@ def credited_rewards(
 
 
 class RolloutWorker:
-    """Collects fragments for the learners of one BatchedPursuit (see the module docstring)."""
+    """Collects fragments for the learners of one BatchedPursuit (see the module docstring).
+
+    ``architecture``: the learners' model header (weights arrive by :meth:`set_weights`);
+    ``ppo``: num_envs (unless ``num_envs`` is given: a service worker's share), gamma,
+    collision_credit and collision_scale; ``partners`` and ``sampler``: the partner
+    policies and how each episode draws them (default uniform per slot); without
+    partners the learners fill every slot (self-play).
+    """
 
     def __init__(
         self,
         task: TaskConfig | str,
-        num_envs: int,
         seed: int,
-        net: NetConfig,
+        architecture: dict[str, Any],
+        ppo: PPOConfig,
         partners: Sequence[Policy] = (),
         num_ctrl: int | None = None,
         sampler: PartnerSampler | None = None,
-        gamma: float = 0.99,
-        collision_credit: str = "team",
-        collision_scale: float = 1.0,
+        num_envs: int | None = None,
     ) -> None:
-        self.core = BatchedPursuit(task, num_envs=num_envs, seed=seed)
+        self.core = BatchedPursuit(task, num_envs=ppo.num_envs if num_envs is None else num_envs, seed=seed)
         if num_ctrl is None:
             num_ctrl = self.core.cfg.players.num_ctrl if partners else self.core.num_p
         self.match = Match(self.core, partners, seed=seed + 1, num_ctrl=num_ctrl, sampler=sampler)
-        self.model = ActorCritic(net)
+        self.model = build_model(dict(architecture))
         self.model.eval()
-        self.gamma = gamma
-        self.collision_credit = collision_credit
-        self.collision_scale = collision_scale
+        self.ppo = ppo
         self.generator = torch.Generator().manual_seed(seed + 2)
         self.obs = self.match.reset(seed=seed)
         self.num_e = self.core.num_e
         B, k = self.obs.shape[:2]
         self._rows = np.repeat(np.arange(B), k)
         self._keys = np.tile(np.arange(k), B)
-        self.memory = ObsHistory(net.history, B, k, self.core.obs_dim) if net.history else None
+        self.memory = self.model.memory(B, k, self.core.obs_dim)
+        self.drawn: Counter[str] = Counter()  # partner profile ("a|b") -> finished episodes
 
     def inputs(self, obs: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Network inputs (n, k, input_dim) of learner observations (n, k, D) of envs ``rows`` (default all)."""
-        if self.memory is None:
-            return obs
         n, k, D = obs.shape
         env = self._rows if rows is None else np.repeat(rows, k)
         key = np.tile(np.arange(k), n)
-        return self.memory.augment(obs.reshape(n * k, D), env, key).reshape(n, k, -1)
+        return self.memory.inputs(obs.reshape(n * k, D), env, key).reshape(n, k, -1)
 
     def set_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
         self.model.load_state_dict(state_dict)
 
     def _state(self) -> np.ndarray | None:
-        if self.model.global_encoder is None:
+        if not self.model.centralised:
             return None
         return global_state(self.core.state, self.core.geometry, self.core.num_p)
 
@@ -160,39 +182,67 @@ class RolloutWorker:
             st = torch.from_numpy(np.broadcast_to(state[:, None], (*obs.shape[:2], state.shape[-1])).copy())
         return self.model.value(torch.from_numpy(obs), self.num_e, st, self.core.num_p).numpy()
 
+    def _record_episodes(self, info: dict[str, Any], idx: np.ndarray, episodes: list[dict[str, Any]]) -> None:
+        team = info["team"]
+        for i in idx:
+            partners = tuple(str(p) for p in team["partners"][i])
+            episodes.append(
+                {
+                    "outcome": DONE_REASONS[info["done_reason"][i]],
+                    "length": int(info["episode_length"][i]),
+                    "return": float(info["episode_return"][i]),
+                    "collided": bool(info["episode_collided"][i]),
+                    "partners": partners,
+                }
+            )
+            if partners:
+                self.drawn["|".join(partners)] += 1
+
     @torch.no_grad()
     def collect(self, steps: int) -> Fragment:
         """Step every environment ``steps`` times with the current weights."""
         B, k, D = self.obs.shape
-        obs = np.empty((steps, B, k, input_dim(D, self.model.cfg.history)), np.float32)
+        u_num = self.match.num_unctrl
+        ppo = self.ppo
+        collision = self.core.cfg.task.reward.collision
+        recredit = ppo.collision_credit != "team" or ppo.collision_scale != 1.0
+        obs: np.ndarray | None = None
         u = np.empty((steps, B, k), np.float32)
         logp = np.empty((steps, B, k), np.float32)
         values = np.empty((steps, B, k), np.float32)
         rewards = np.empty((steps, B, k), np.float32)
         dones = np.empty((steps, B), bool)
+        extras = {"learner_slots": np.empty((steps, B, k), np.int8)}
+        if u_num:
+            extras["partner_members"] = np.empty((steps, B, u_num), np.int16)
+            extras["partner_actions"] = np.empty((steps, B, u_num), np.float32)
         episodes: list[dict[str, Any]] = []
         t_inf = t_sim = 0.0
         state = self._state()
-        central = state is not None
         states = np.empty((steps, B, state.shape[-1]), np.float32) if state is not None else None
         for t in range(steps):
             t0 = time.perf_counter()
             inputs = self.inputs(self.obs)
+            if obs is None:
+                obs = np.empty((steps, *inputs.shape), np.float32)
             dist = self.model.dist(torch.from_numpy(inputs), self.num_e)
             ut = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=self.generator)
             lp = squash_log_prob(dist, ut)
             v = self._values(inputs, state)
             actions = torch.tanh(ut).numpy()
             t1 = time.perf_counter()
+            extras["learner_slots"][t] = self.match.learner_slots  # the teams of this step, before resets
+            if u_num:
+                extras["partner_members"][t] = self.match.members
+                partner_slots = self.match.partner_slots.copy()
             next_obs, r, d, info = self.match.step(actions)
-            if self.collision_credit != "team" or self.collision_scale != 1.0:
-                r = credited_rewards(
-                    r, info, self.core.cfg.task.reward.collision, self.collision_credit, self.collision_scale
-                )
+            if recredit:
+                r = credited_rewards(r, info, collision, ppo.collision_credit, ppo.collision_scale)
             t2 = time.perf_counter()
             obs[t], u[t], logp[t], values[t], rewards[t], dones[t] = inputs, ut.numpy(), lp.numpy(), v, r, d
-            if self.memory is not None:
-                self.memory.record(self.obs.reshape(B * k, D), self._rows, self._keys, actions.reshape(-1))
+            if u_num:
+                extras["partner_actions"][t] = np.take_along_axis(info["actions"], partner_slots, axis=1)
+            self.memory.record(self.obs.reshape(B * k, D), self._rows, self._keys, actions.reshape(-1))
             if states is not None:
                 states[t] = state
             if d.any():
@@ -200,27 +250,19 @@ class RolloutWorker:
                 timeout = idx[info["done_reason"][idx] == TIMEOUT]
                 if len(timeout):
                     fs = None
-                    if central:
+                    if states is not None:
                         assert self.core.final_state is not None  # set by the core at every episode end
                         fs = global_state(self.core.final_state, self.core.geometry, self.core.num_p)[timeout]
                     final = self.inputs(info["final_obs"][timeout], timeout)
-                    rewards[t, timeout] += self.gamma * self._values(final, fs)
-                for i in idx:
-                    episodes.append(
-                        {
-                            "outcome": DONE_REASONS[info["done_reason"][i]],
-                            "length": int(info["episode_length"][i]),
-                            "return": float(info["episode_return"][i]),
-                            "collided": bool(info["episode_collided"][i]),
-                        }
-                    )
-                if self.memory is not None:
-                    self.memory.reset(d)
+                    rewards[t, timeout] += ppo.gamma * self._values(final, fs)
+                self._record_episodes(info, idx, episodes)
+                self.memory.reset(d)
             self.obs = next_obs
             state = self._state()
             t3 = time.perf_counter()
             t_inf += (t1 - t0) + (t3 - t2)
             t_sim += t2 - t1
+        assert obs is not None
         last = self._values(self.inputs(self.obs), state)
         return Fragment(
             obs=obs,
@@ -233,4 +275,5 @@ class RolloutWorker:
             state=states,
             episodes=episodes,
             timings={"simulation": t_sim, "inference": t_inf},
+            extras=extras,
         )

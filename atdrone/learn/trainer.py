@@ -3,8 +3,9 @@
 Modes: ``self_play`` (IPPO, one network shared by every pursuer), ``mappo`` (the
 same with a centralised critic) and ``best_response`` (num_ctrl learners with zoo
 partners). A run lives in ``<out_dir>/<name>/``: the config, ``last.pt`` (policy
-checkpoint), ``trainer_state.pt`` (optimizer, counters, RNG, MLflow run id),
-``history.csv`` and ``curve.png``; ``--resume`` continues from the last checkpoint.
+checkpoint), ``learner_state.safetensors`` (the learner's state: weights, optimiser,
+RNG, schedule position, plus the run's counters and MLflow run id), ``history.csv`` and
+``curve.png``; ``--resume`` continues exactly where the last save stopped.
 """
 
 from __future__ import annotations
@@ -18,14 +19,15 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
 import pandas as pd
 import torch
 
 from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, load_task, repo_path, require_at_least
 from atdrone.fileio import atomic_write_bytes
-from atdrone.learn.ppo import PPOConfig, learning_rate, net_config, ppo_config, ppo_update
+from atdrone.learn.learner import Learner, LearnerSpec
+from atdrone.learn.ppo import PPOConfig, ppo_config
 from atdrone.learn.rollout import RolloutWorker
+from atdrone.models import build_model
 from atdrone.models.checkpoint import save_checkpoint
 from atdrone.models.networks import ActorCritic
 from atdrone.policies.base import Policy
@@ -34,6 +36,7 @@ from atdrone.policies.zoo import load_zoo
 from atdrone.teams.evaluation import metrics, run_episodes
 
 log = logging.getLogger(__name__)
+STATE_FILE = "learner_state.safetensors"
 
 
 @dataclass(frozen=True)
@@ -97,82 +100,73 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     return cfg
 
 
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 class Trainer:
-    """Collect -> PPO update -> evaluate -> checkpoint, in one process."""
+    """Collect -> PPO update (a :class:`~atdrone.learn.learner.Learner`) -> evaluate -> checkpoint, in one process."""
 
     def __init__(self, cfg: TrainConfig, tracker: Any | None = None) -> None:
         self.cfg = cfg
         self.task = load_task(cfg.task)
         self.ppo: PPOConfig = ppo_config(cfg.ppo, cfg.preset)
-        self.net = net_config(self.ppo, centralised_critic=cfg.mode == "mappo" or cfg.centralised_critic)
         self.run_dir = Path(cfg.out_dir) / cfg.name
-        self.device = pick_device(cfg.device)
         torch.set_num_threads(cfg.torch_threads)
-        torch.manual_seed(cfg.seed)
-        self.model = ActorCritic(self.net).to(self.device)
+        self.learner = Learner(
+            LearnerSpec(
+                ppo=self.ppo,
+                num_e=self.task.players.num_e,
+                num_p=self.task.players.num_p,
+                seed=cfg.seed,
+                total_updates=cfg.total_env_steps / (self.ppo.num_envs * self.ppo.rollout_steps),
+                centralised_critic=cfg.mode == "mappo" or cfg.centralised_critic,
+                device=cfg.device,
+            )
+        )
+        self.model = self.learner.model
         if cfg.init_checkpoint:
-            from atdrone.models.checkpoint import load_checkpoint
-
-            path = Path(cfg.init_checkpoint)
-            if not path.exists():  # repository-relative, like zoo checkpoints
-                path = repo_path(path)
-            if not path.is_file():
-                raise ConfigError("init_checkpoint", f"no checkpoint at {cfg.init_checkpoint} (train that run first)")
-            start, _ = load_checkpoint(path, expect_task=self.task.name)
-            try:
-                if start.cfg == self.net:
-                    self.model.load_state_dict(start.state_dict())
-                else:
-                    self.model.widen_from(start)  # the new inputs get zero weights, else ValueError
-            except ValueError:
-                raise ConfigError("init_checkpoint", f"architecture {start.cfg} does not match {self.net}") from None
+            self._start_from(cfg.init_checkpoint)
         if cfg.start_std > 0:
+            if not isinstance(self.model, ActorCritic):
+                raise ConfigError("start_std", f"{self.model.architecture()['class']} has no exploration std to set")
             with torch.no_grad():
                 self.model.log_std.fill_(math.log(cfg.start_std))
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.ppo.lr, eps=1e-5)
-        self.generator = torch.Generator().manual_seed(cfg.seed)
         self.partners: list[Policy] = load_zoo(cfg.zoo).policies() if cfg.mode == "best_response" else []
-        self.worker = RolloutWorker(
-            self.task,
-            self.ppo.num_envs,
-            cfg.seed,
-            self.net,
-            partners=self.partners,
-            gamma=self.ppo.gamma,
-            collision_credit=self.ppo.collision_credit,
-            collision_scale=self.ppo.collision_scale,
-        )
+        self.worker = RolloutWorker(self.task, cfg.seed, self.model.architecture(), self.ppo, partners=self.partners)
         self.tracker = tracker
         self.env_steps = 0
-        self.updates = 0
         self.history: list[dict[str, float]] = []
         self.run_id: str | None = None
 
+    def _start_from(self, checkpoint: str) -> None:
+        """Take a checkpoint's weights: the same architecture, or a narrower one widened with zero weights."""
+        from atdrone.models.checkpoint import load_checkpoint
+
+        path = Path(checkpoint)
+        if not path.exists():  # repository-relative, like zoo checkpoints
+            path = repo_path(path)
+        if not path.is_file():
+            raise ConfigError("init_checkpoint", f"no checkpoint at {checkpoint} (train that run first)")
+        start, _ = load_checkpoint(path, expect_task=self.task.name)
+        try:
+            if start.architecture() == self.model.architecture():
+                self.model.load_state_dict(start.state_dict())
+            else:
+                self.model.widen_from(start)  # the new inputs get zero weights, else ValueError
+        except ValueError:
+            raise ConfigError(
+                "init_checkpoint", f"architecture {start.architecture()} does not match {self.model.architecture()}"
+            ) from None
+
+    @property
+    def updates(self) -> int:
+        return self.learner.updates
+
     # ------------------------------------------------------------ persistence
     def save(self, metrics_now: dict[str, float] | None = None) -> Path:
-        """Write last.pt and trainer_state.pt atomically; returns the checkpoint path."""
+        """Write last.pt and the learner state (with the run's counters) atomically; returns the checkpoint path."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
         ckpt = self.run_dir / "last.pt"
         save_checkpoint(ckpt, self.model, self.header(metrics_now))
-        buf = io.BytesIO()
-        torch.save(
-            {
-                "optimizer": self.optimizer.state_dict(),
-                "env_steps": self.env_steps,
-                "updates": self.updates,
-                "generator": self.generator.get_state(),
-                "history": self.history,
-                "run_id": self.run_id,
-            },
-            buf,
-        )
-        atomic_write_bytes(self.run_dir / "trainer_state.pt", buf.getvalue())
+        extra = {"env_steps": self.env_steps, "history": self.history, "run_id": self.run_id}
+        self.learner.save(self.run_dir / STATE_FILE, extra)
         return ckpt
 
     def header(self, metrics_now: dict[str, float] | None = None) -> dict[str, Any]:
@@ -190,30 +184,26 @@ class Trainer:
         }
 
     def resume(self) -> bool:
-        """Load last.pt and trainer_state.pt when present; True when resumed."""
-        state_path = self.run_dir / "trainer_state.pt"
+        """Load the learner state (and its counters) when present; True when resumed."""
+        state_path = self.run_dir / STATE_FILE
         if not state_path.is_file():
+            if (self.run_dir / "trainer_state.pt").is_file():
+                raise RuntimeError(
+                    f"{self.run_dir} was saved by an older atdrone (trainer_state.pt, a pickle): it cannot be "
+                    "resumed; start a new run from its weights with init_checkpoint: last.pt"
+                )
             return False
-        from atdrone.models.checkpoint import load_checkpoint
-
-        model, header = load_checkpoint(self.run_dir / "last.pt", expect_task=self.task.name)
-        self.model.load_state_dict(model.state_dict())
-        state = torch.load(state_path, weights_only=False, map_location=self.device)
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.env_steps, self.updates = state["env_steps"], state["updates"]
-        self.generator.set_state(state["generator"])
-        self.history, self.run_id = state["history"], state["run_id"]
-        if header["step"] != self.env_steps:
-            raise RuntimeError(f"{self.run_dir}: checkpoint step {header['step']} != trainer state {self.env_steps}")
+        extra = self.learner.load(state_path)
+        self.env_steps, self.history, self.run_id = extra["env_steps"], extra["history"], extra["run_id"]
         log.info("resumed %s at %d env steps", self.run_dir, self.env_steps)
         return True
 
     # --------------------------------------------------------------- training
     def policy(self, deterministic: bool = True) -> NeuralPolicy:
-        cpu = ActorCritic(self.net)
-        cpu.load_state_dict({k: v.cpu() for k, v in self.model.state_dict().items()})
+        cpu = build_model(self.model.architecture())
+        cpu.load_state_dict(self.learner.get_weights())
         cpu.eval()
-        return NeuralPolicy(cpu, name=self.cfg.name, deterministic=deterministic)
+        return NeuralPolicy(cpu, name=self.cfg.name, deterministic=deterministic, num_e=self.task.players.num_e)
 
     def evaluate(self, episodes: int, seed: int = 12345) -> dict[str, float]:
         """SUC/COL/AST/REW of the current policy: self-play (all slots) or with the zoo."""
@@ -223,42 +213,15 @@ class Trainer:
         return metrics(records)
 
     def update_once(self) -> dict[str, float]:
-        """One rollout and one PPO update; returns train/ and perf/ metrics."""
+        """One rollout and one learner update; returns train/ and perf/ metrics."""
         t0 = time.perf_counter()
-        self.worker.set_weights({k: v.cpu() for k, v in self.model.state_dict().items()})
+        self.worker.set_weights(self.learner.get_weights())
         frag = self.worker.collect(self.ppo.rollout_steps)
-        t1 = time.perf_counter()
         torch.set_num_threads(self.cfg.update_threads)  # the rollout is idle while the update runs
-        progress = self.env_steps / self.cfg.total_env_steps
-        stats = ppo_update(
-            self.model,
-            self.optimizer,
-            frag.batch(self.ppo.gamma, self.ppo.gae_lambda),
-            self.ppo,
-            self.task.players.num_e,
-            self.task.players.num_p,
-            self.generator,
-            lr=learning_rate(self.ppo, progress),
-        )
+        out = self.learner.update(frag)
         torch.set_num_threads(self.cfg.torch_threads)
-        t2 = time.perf_counter()
         self.env_steps += frag.dones.size
-        self.updates += 1
-        eps = frag.episodes
-        out = {f"train/{k}": v for k, v in stats.items()}
-        if eps:
-            out["train/episodes"] = len(eps)
-            out["train/success"] = float(np.mean([e["outcome"] == "captured" for e in eps]))
-            out["train/collision"] = float(np.mean([e["collided"] for e in eps]))
-            out["train/episode_return"] = float(np.mean([e["return"] for e in eps]))
-            out["train/episode_length"] = float(np.mean([e["length"] for e in eps]))
-        out["train/lr"] = learning_rate(self.ppo, progress)
-        out["train/log_std"] = float(self.model.log_std.detach().cpu())
-        total = t2 - t0
-        out["perf/pursuer_steps_per_s"] = frag.samples / total
-        out["perf/simulation_s"] = frag.timings["simulation"]
-        out["perf/inference_s"] = frag.timings["inference"]
-        out["perf/update_s"] = t2 - t1
+        out["perf/pursuer_steps_per_s"] = frag.samples / (time.perf_counter() - t0)
         return out
 
     def train(self, progress: bool = True) -> dict[str, float]:
@@ -335,7 +298,7 @@ def run_training(cfg: TrainConfig, resume: bool = False, progress: bool = True, 
     if resume:
         if not trainer.resume():
             log.info("nothing to resume in %s: starting fresh", trainer.run_dir)
-    elif (trainer.run_dir / "trainer_state.pt").exists():
+    elif (trainer.run_dir / STATE_FILE).exists() or (trainer.run_dir / "trainer_state.pt").exists():
         raise FileExistsError(f"{trainer.run_dir} holds a run: pass --resume to continue it, or pick another name")
     experiment = cfg.experiment or cfg.name
     with tracker.run(experiment, f"{cfg.name}-seed{cfg.seed}", run_id=trainer.run_id) as run_id:

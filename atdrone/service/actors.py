@@ -1,18 +1,18 @@
-"""Ray actors of the training service: rollout workers and PPO learners.
+"""Ray actors of the training service: thin wrappers around the rollout worker and the Learner.
 
-Rollout workers own a BatchedPursuit each, fill the learner slots with the weights
-they are sent (an object ref put once per update) and the partner slots with
-population or zoo members, and return whole fragments as arrays. Every call carries
-everything it needs (weights, partner specs, probabilities), so a worker that dies
-is restarted by Ray and the call redone (max_restarts / max_task_retries).
-Learners hold a model and its optimizer and run the PPO update, on a GPU when the
-actor was given one.
+A rollout worker actor runs one training job at a time (:meth:`RolloutWorkerActor.start`
+builds a fresh :class:`~atdrone.learn.rollout.RolloutWorker` from the job's seed,
+partners and sampler, so a job repeats exactly wherever and whenever it runs) and plays
+evaluation matches. Every call carries everything it needs, so a worker that dies is
+restarted by Ray and the call redone (max_restarts / max_task_retries). The learner
+actor is a :class:`~atdrone.learn.learner.Learner`, on a GPU when the actor was given one.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -20,13 +20,14 @@ import ray
 import torch
 
 from atdrone.config import TaskConfig
-from atdrone.learn.ppo import PPOConfig, ppo_update
+from atdrone.learn.learner import Learner, LearnerSpec
+from atdrone.learn.ppo import PPOConfig
 from atdrone.learn.rollout import Fragment, RolloutWorker
 from atdrone.models.checkpoint import save_checkpoint
-from atdrone.models.networks import ActorCritic, NetConfig
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import MemberSpec, build_policy
 from atdrone.teams.evaluation import metrics, run_episodes
+from atdrone.teams.partners import PartnerDistribution, as_sampler
 
 
 class PolicyCache:
@@ -42,55 +43,66 @@ class PolicyCache:
         return self._cache[key]
 
 
+@dataclass(frozen=True)
+class RolloutJob:
+    """One worker's part of training a learner: its seed, environments and partners.
+
+    ``partners``: the specs of ``distribution.members`` in order (empty for self-play).
+    """
+
+    seed: int
+    num_envs: int
+    num_ctrl: int
+    architecture: dict[str, Any]
+    partners: tuple[MemberSpec, ...] = ()
+    distribution: PartnerDistribution | None = None
+
+
 @ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=-1)
 class RolloutWorkerActor:
-    """One BatchedPursuit of ``num_envs`` environments collecting for learners."""
+    """Collects fragments for one training job at a time, and plays evaluation matches."""
 
-    def __init__(self, task: TaskConfig, num_envs: int, seed: int, net: NetConfig, gamma: float) -> None:
+    def __init__(self, task: TaskConfig, ppo: PPOConfig) -> None:
         torch.set_num_threads(1)
-        self.task, self.num_envs, self.seed, self.net, self.gamma = task, num_envs, seed, net, gamma
+        self.task, self.ppo = task, ppo
         self.policies = PolicyCache()
         self.worker: RolloutWorker | None = None
-        self.key: tuple | None = None
-        self.rebuilds = 0
+        self.job: RolloutJob | None = None
 
     def pid(self) -> int:
         return os.getpid()
 
-    def _worker(self, partners: Sequence[MemberSpec], probs: Sequence[float] | None, num_ctrl: int) -> RolloutWorker:
-        key = (tuple((s.name, s.checkpoint) for s in partners), tuple(probs) if probs is not None else None, num_ctrl)
-        if self.worker is None or key != self.key:
-            sampler = None
-            if probs is not None and partners:
-                p = np.asarray(probs, dtype=np.float64) / np.sum(probs)
-                num_unctrl = self.task.players.num_p - num_ctrl
-                sampler = lambda rng, n: rng.choice(len(p), size=(n, num_unctrl), p=p)
-            self.worker = RolloutWorker(
-                self.task,
-                self.num_envs,
-                seed=int(np.random.SeedSequence([self.seed, self.rebuilds]).generate_state(1)[0] % 2**31),
-                net=self.net,
-                partners=[self.policies.get(s) for s in partners],
-                num_ctrl=num_ctrl,
-                sampler=sampler,
-                gamma=self.gamma,
-            )
-            self.key = key
-            self.rebuilds += 1
-        return self.worker
+    def start(self, job: RolloutJob) -> None:
+        """Begin a training job: fresh environments, seeded by the job."""
+        self.job = job
+        sampler = None
+        if job.distribution is not None:
+            sampler = as_sampler(job.distribution, self.task.players.num_p - job.num_ctrl)
+        self.worker = RolloutWorker(
+            self.task,
+            job.seed,
+            job.architecture,
+            self.ppo,
+            partners=[self.policies.get(s) for s in job.partners],
+            num_ctrl=job.num_ctrl,
+            sampler=sampler,
+            num_envs=job.num_envs,
+        )
 
-    def collect(
-        self,
-        weights: dict[str, torch.Tensor],
-        partners: Sequence[MemberSpec],
-        probs: Sequence[float] | None,
-        num_ctrl: int,
-        steps: int,
-    ) -> Fragment:
-        """A fragment of ``steps`` steps with the learner ``weights`` and these partners."""
-        worker = self._worker(partners, probs, num_ctrl)
-        worker.set_weights(weights)
-        return worker.collect(steps)
+    def collect(self, job: RolloutJob, weights: dict[str, torch.Tensor], steps: int) -> Fragment:
+        """A fragment of ``steps`` steps of ``job`` (started here when new) with the learner ``weights``.
+
+        Each call names its job, so a restarted worker (Ray retries the call) picks it up again.
+        """
+        if self.worker is None or self.job is None or job.seed != self.job.seed:  # a job is known by its seed
+            self.start(job)
+        assert self.worker is not None
+        self.worker.set_weights(weights)
+        return self.worker.collect(steps)
+
+    def drawn(self) -> dict[str, int]:
+        """Partner profiles of the current job's finished episodes, as drawn."""
+        return dict(self.worker.drawn) if self.worker is not None else {}
 
     def evaluate(self, learner: MemberSpec, profile: Sequence[MemberSpec], episodes: int, seed: int) -> dict[str, Any]:
         """SUC/COL/AST/REW of ``learner`` in the learner slots with exactly ``profile`` as partners."""
@@ -112,62 +124,31 @@ class RolloutWorkerActor:
 
 @ray.remote(num_cpus=0, max_restarts=0)
 class LearnerActor:
-    """A PPO learner: the model, its optimizer and the update."""
+    """A :class:`~atdrone.learn.learner.Learner` behind Ray: the same object as the local trainer's."""
 
-    def __init__(self, net: NetConfig, ppo: PPOConfig, num_e: int, num_p: int, seed: int, device: str = "auto"):
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
+    def __init__(self, spec: LearnerSpec) -> None:
         torch.set_num_threads(1)
-        torch.manual_seed(seed)
-        self.device = torch.device(device)
-        self.net, self.ppo, self.num_e, self.num_p = net, ppo, num_e, num_p
-        self.model = ActorCritic(net).to(self.device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=ppo.lr, eps=1e-5)
-        self.generator = torch.Generator().manual_seed(seed)
-        self.lr, self.ent_coef = ppo.lr, ppo.ent_coef
+        self.learner = Learner(spec)
 
     def get_weights(self) -> dict[str, torch.Tensor]:
-        return {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()}
+        return self.learner.get_weights()
 
     def set_weights(self, weights: dict[str, torch.Tensor]) -> None:
-        self.model.load_state_dict(weights)
+        self.learner.set_weights(weights)
 
     def hparams(self) -> dict[str, float]:
-        return {"lr": self.lr, "ent_coef": self.ent_coef}
+        return dict(self.learner.hparams)
 
     def set_hparams(self, lr: float | None = None, ent_coef: float | None = None) -> None:
-        self.lr = lr if lr is not None else self.lr
-        self.ent_coef = ent_coef if ent_coef is not None else self.ent_coef
+        self.learner.set_hparams(lr=lr, ent_coef=ent_coef)
 
     def update(self, *fragments: Fragment) -> dict[str, float]:
-        """One PPO update over the fragments (passed as object refs, resolved by Ray)."""
-        from dataclasses import replace
+        """One update over the fragments (object refs, resolved by Ray)."""
+        return self.learner.update(fragments)
 
-        from atdrone.learn.rollout import concat_fragments
-
-        frag = concat_fragments(fragments)
-        cfg = replace(self.ppo, ent_coef=self.ent_coef)
-        stats = ppo_update(
-            self.model,
-            self.optimizer,
-            frag.batch(cfg.gamma, cfg.gae_lambda),
-            cfg,
-            self.num_e,
-            self.num_p,
-            self.generator,
-            lr=self.lr,
-        )
-        eps = frag.episodes
-        out = {f"train/{k}": v for k, v in stats.items()}
-        out["train/samples"] = frag.samples
-        if eps:
-            out["train/success"] = float(np.mean([e["outcome"] == "captured" for e in eps]))
-            out["train/collision"] = float(np.mean([e["collided"] for e in eps]))
-            out["train/episode_return"] = float(np.mean([e["return"] for e in eps]))
-        out["perf/simulation_s"] = frag.timings.get("simulation", 0.0)
-        out["perf/inference_s"] = frag.timings.get("inference", 0.0)
-        return out
+    def get_state(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+        return self.learner.get_state()
 
     def save(self, path: str, header: dict[str, Any]) -> dict[str, Any]:
         """Write the current weights as a checkpoint; returns the full header (with sha256)."""
-        return save_checkpoint(path, self.model, header)
+        return save_checkpoint(path, self.learner.model, header)

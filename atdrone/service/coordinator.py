@@ -1,23 +1,30 @@
-"""The coordinator actor: one generation of any service algorithm reads in one method.
+"""The coordinator actor: the oracle the population algorithms call, and the run's rollout workers.
 
-HOLA-Drone V2 (``hola``; ``hola_no_g`` draws partners uniformly)::
+The algorithm (a class of :data:`atdrone.population.ALGORITHMS`) decides what a
+generation does; the coordinator does it (:class:`atdrone.population.base.Oracle`):
 
-    evaluate the missing hyperedges (teams touching last generation's learners, spread
-    over the rollout workers) -> preference hypergraph -> eta -> rho over the partners
-    -> best-response PPO learners trained against partner profiles drawn from rho
-    -> register the learners (population update: drop the lowest-eta member when full)
+- ``evaluate(teams)``: play each team on the rollout workers and record the matches;
+- ``train(start_from, partners, hparams)``: a learner actor from a member's weights,
+  updated ``updates_per_generation`` times on fragments the workers collect with
+  partners drawn from ``partners`` per environment and per episode;
+- ``register(trained, parents)``: the learner's checkpoint and registry row;
+- ``retire(members)``.
 
-Generation 0 of HOLA bootstraps the population with a self-play learner. ``sp`` trains
-one self-play learner and registers a snapshot per generation; ``br`` does the same
-against a fixed zoo; ``pbt`` trains a population of IPPO learners against each other
-and then exploits (the worst copies the best) and explores (perturbs learning rate and
-entropy coefficient). The coordinator returns a plain report per generation; the driver
-logs it to MLflow.
+Every random draw of generation g comes from seeds derived from (experiment seed, g,
+index): learner initialisation and update order, each worker's environments and
+partner draws, evaluation seeds, and ``rng``, the generation's generator handed to the
+algorithm. The saved state (:meth:`Coordinator.state`: the generation index and the
+algorithm's JSON state) therefore fixes everything a resumed generation draws, and a
+run killed mid-generation and resumed ends exactly as an uninterrupted one.
 """
 
 from __future__ import annotations
 
+import re
 import time
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,61 +32,77 @@ import numpy as np
 import ray
 
 from atdrone.config import load_task
+from atdrone.learn.learner import LearnerSpec
 from atdrone.learn.ppo import net_config, ppo_config
+from atdrone.models.checkpoint import load_checkpoint
 from atdrone.policies.zoo import MemberSpec, load_zoo
-from atdrone.population import hypergraph as hola
-from atdrone.registry import find_registry_actor, new_member_id
-from atdrone.service.actors import LearnerActor, RolloutWorkerActor
+from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Team, Trained
+from atdrone.registry import find_registry_actor
+from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor
 from atdrone.service.experiment import ExperimentConfig, registry_name
+from atdrone.teams.partners import PartnerDistribution, describe
+
+# streams of derive_seed(experiment seed, generation, STREAM, index)
+LEARNER_STREAM, EVAL_STREAM, RNG_STREAM = 0, 1, 2
+
+
+def derive_seed(*parts: int) -> int:
+    """A reproducible 31-bit seed from integers (numpy's SeedSequence)."""
+    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0] % 2**31)
+
+
+def member_id(algorithm: str, generation: int, index: int) -> str:
+    """The id of a generation's index-th registered learner, e.g. ``hola-g3-0``: the same on every run of a config."""
+    slug = re.sub(r"[^a-z0-9]+", "-", algorithm.lower()).strip("-") or "member"
+    return f"{slug}-g{generation}-{index}"
 
 
 @ray.remote(num_cpus=0, max_restarts=0)
 class Coordinator:
-    """Owns the rollout workers and learners of one experiment run."""
+    """Owns the rollout workers and learners of one experiment run; runs its algorithm's generations."""
 
     def __init__(
-        self, cfg: ExperimentConfig, run_dir: str, state: dict[str, Any] | None = None, registry: Any = None
+        self,
+        cfg: ExperimentConfig,
+        algorithm: type[Algorithm],
+        run_dir: str,
+        state: Mapping[str, Any] | None = None,
+        registry: Any = None,
     ) -> None:
         self.cfg = cfg
         self.run = cfg.name
         self.run_dir = Path(run_dir)
         self.task = load_task(cfg.task)
         self.ppo = ppo_config(cfg.ppo, cfg.preset)
-        self.net = net_config(self.ppo)
+        self.architecture = {"class": "ActorCritic", **asdict(net_config(self.ppo))}
         # the run's registry actor: passed in (the handle keeps it alive) or found by name
         self.registry = registry if registry is not None else find_registry_actor(registry_name(cfg.name))
         self.num_p = self.task.players.num_p
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl
-        self.workers = [
-            RolloutWorkerActor.remote(self.task, cfg.envs_per_worker, cfg.seed * 1000 + i, self.net, self.ppo.gamma)
-            for i in range(cfg.num_workers)
-        ]
-        self.zoo = load_zoo(cfg.zoo).spec.members if cfg.zoo else ()
-        state = state or {}
+        self.workers = [RolloutWorkerActor.remote(self.task, self.ppo) for _ in range(cfg.num_workers)]
+        self.algorithm = algorithm(cfg.algorithm_config(), cfg.seed)
+        state = dict(state or {})
         self.generation: int = state.get("generation", 0)
-        self.population: list[str] = state.get("population", [])
-        self.new_learners: list[str] = state.get("new_learners", [])
-        self.eta: dict[str, float] = state.get("eta", {})
-        self.hparams: dict[str, dict[str, float]] = state.get("hparams", {})
-        self.exploit_from: dict[str, str] = state.get("exploit_from", {})  # PBT: loser -> winner
-        self.rng = np.random.default_rng(cfg.seed)
-        if "rng" in state:
-            self.rng.bit_generator.state = state["rng"]
-        self.learner_seed = cfg.seed * 7919
+        if "algorithm" in state:
+            self.algorithm.load_state(state["algorithm"])
+        self.zoo_specs: dict[str, MemberSpec] = {}
+        self._begin(self.generation)
+
+    def _begin(self, generation: int) -> None:
+        """Counters and the generator of a generation, all derived from (seed, generation)."""
+        self.rng = np.random.default_rng(derive_seed(self.cfg.seed, generation, RNG_STREAM))
+        self.trained = 0
+        self.registered = 0
+        self.evaluated = 0
 
     # ---------------------------------------------------------------- state
     def state(self) -> dict[str, Any]:
-        """Everything needed to continue after the last completed generation."""
-        return {
-            "generation": self.generation,
-            "population": list(self.population),
-            "new_learners": list(self.new_learners),
-            "eta": dict(self.eta),
-            "hparams": dict(self.hparams),
-            "exploit_from": dict(self.exploit_from),
-            "rng": self.rng.bit_generator.state,
-        }
+        """Everything needed to continue after the last completed generation (JSON)."""
+        return {"generation": self.generation, "seed": self.cfg.seed, "algorithm": self.algorithm.state()}
+
+    def population(self) -> list[str]:
+        return list(self.algorithm.population)
 
     def worker_pids(self) -> list[int]:
         return ray.get([w.pid.remote() for w in self.workers])
@@ -87,245 +110,155 @@ class Coordinator:
     def workers_handles(self) -> list[Any]:
         return list(self.workers)
 
-    # -------------------------------------------------------------- helpers
-    def spec(self, member_id: str) -> MemberSpec:
-        return MemberSpec(name=member_id, kind="checkpoint", checkpoint=str(self.checkpoint_path(member_id)))
-
-    def checkpoint_path(self, member_id: str) -> Path:
-        return (self.run_dir / "members" / f"{member_id}.pt").resolve()
-
-    def _learner(self, init_from: str | None = None, hparams: dict[str, float] | None = None) -> Any:
-        """A fresh learner actor, with the weights (and hyperparameters) of ``init_from`` when given."""
-        self.learner_seed += 1
-        learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(
-            self.net, self.ppo, self.task.players.num_e, self.num_p, self.learner_seed
-        )
-        if init_from is not None:
-            from atdrone.models.checkpoint import load_checkpoint
-
-            model, _ = load_checkpoint(self.checkpoint_path(init_from))
-            ray.get(learner.set_weights.remote(model.state_dict()))
-        hp = hparams if hparams is not None else self.hparams.get(init_from or "")
-        if hp:
-            ray.get(learner.set_hparams.remote(**hp))
-        return learner
-
-    def _train(
-        self, learner: Any, partners: list[MemberSpec], probs: list[float] | None, num_ctrl: int
-    ) -> list[dict[str, float]]:
-        """updates_per_generation PPO updates of ``learner`` with these partners."""
-        history = []
-        for _ in range(self.cfg.updates_per_generation):
-            t0 = time.perf_counter()
-            weights = learner.get_weights.remote()  # one object ref, shared by every worker
-            fragments = [
-                w.collect.remote(weights, partners, probs, num_ctrl, self.cfg.rollout_steps) for w in self.workers
-            ]
-            stats = ray.get(learner.update.remote(*fragments))
-            stats["perf/pursuer_steps_per_s"] = stats["train/samples"] / (time.perf_counter() - t0)
-            history.append(stats)
-        return history
-
-    def _register(self, learner: Any, algorithm: str, parents: list[str], history: list[dict[str, float]]) -> str:
-        member_id = new_member_id(algorithm, self.generation)
-        last = history[-1] if history else {}
-        header = {
-            "name": member_id,
-            "task": self.task.name,
-            "num_p": self.num_p,
-            "num_e": self.task.players.num_e,
-            "algorithm": algorithm,
-            "config": self.cfg.to_dict(),
-            "seed": self.cfg.seed,
-            "step": self.cfg.updates_per_generation
-            * self.cfg.num_workers
-            * self.cfg.envs_per_worker
-            * self.cfg.rollout_steps,
-            "generation": self.generation,
-            "parents": parents,
-            "metrics": {k: v for k, v in last.items() if k.startswith("train/")},
-        }
-        full = ray.get(learner.save.remote(str(self.checkpoint_path(member_id)), header))
-        ray.get(
-            self.registry.add_member.remote(
-                run=self.run,
-                algorithm=algorithm,
-                generation=self.generation,
-                task=self.task.name,
-                parents=parents,
-                checkpoint=str(self.checkpoint_path(member_id)),
-                sha256=full["sha256"],
-                metrics=header["metrics"],
-                member_id=member_id,
-            )
-        )
-        self.hparams[member_id] = ray.get(learner.hparams.remote())
-        return member_id
-
-    def _evaluate_teams(self, teams: list[tuple[str, ...]]) -> list[dict[str, Any]]:
-        """Play each team (learner id repeated num_ctrl times + partner ids) on the workers; record the matches."""
-        seeds = [self.cfg.seed * 100003 + self.generation * 1009 + i for i in range(len(teams))]
-        calls = [
-            self.workers[i % len(self.workers)].evaluate.remote(
-                self.spec(team[0]), [self.spec(p) for p in team[self.num_ctrl :]], self.cfg.eval_episodes, seed
-            )
-            for i, (team, seed) in enumerate(zip(teams, seeds, strict=True))
-        ]
-        rows = []
-        for team, seed, result in zip(teams, seeds, ray.get(calls), strict=True):
-            self.registry.add_match.remote(
-                list(team), self.task.name, self.run, self.generation, [seed], self.cfg.eval_episodes, result
-            )
-            rows.append({"team": list(team), **result})
-        return rows
-
-    def _slot_order(self, key: tuple[str, ...], learners: list[str]) -> tuple[str, ...]:
-        """A team_key as slots: the learner (filling num_ctrl slots) first, then its partners."""
-        for m in learners:
-            if key.count(m) >= self.num_ctrl:
-                rest = list(key)
-                for _ in range(self.num_ctrl):
-                    rest.remove(m)
-                return (m,) * self.num_ctrl + tuple(rest)
-        raise ValueError(f"team {key} has no learner filling {self.num_ctrl} slots")
-
     # ----------------------------------------------------------- generation
-    def run_generation(self) -> dict[str, Any]:
-        """One generation of the configured algorithm; returns its report."""
+    def run_generation(self) -> GenerationReport:
+        """One generation of the algorithm; returns its report."""
         t0 = time.perf_counter()
+        self._begin(self.generation)
         ray.get(self.registry.start_generation.remote(self.run, self.generation, {"algorithm": self.cfg.algorithm}))
-        algo = self.cfg.algorithm
-        report: dict[str, Any] = {"generation": self.generation, "algorithm": algo}
-        if algo in ("hola", "hola_no_g"):
-            report.update(self._hola_generation(uniform=algo == "hola_no_g"))
-        elif algo == "pbt":
-            report.update(self._pbt_generation())
-        else:
-            report.update(self._single_generation(algo))
-        report["population"] = list(self.population)
-        report["wall_s"] = time.perf_counter() - t0
+        report = self.algorithm.generation(self)
+        report.wall_s = time.perf_counter() - t0
         ray.get(
             self.registry.finish_generation.remote(
-                self.run, self.generation, {"population": self.population, "learners": report["learners"]}
+                self.run, self.generation, {"population": report.population, "learners": report.learners}
             )
         )
         self.generation += 1
         return report
 
-    def _single_generation(self, algo: str) -> dict[str, Any]:
-        """sp: self-play snapshot; br: best response to the zoo (uniform partners)."""
-        parent = self.population[-1] if self.population else None
-        learner = self._learner(init_from=parent)
-        if algo == "sp":
-            history = self._train(learner, [], None, self.num_p)
-        else:
-            history = self._train(learner, list(self.zoo), [1.0] * len(self.zoo), self.num_ctrl)
-        member = self._register(learner, algo, [parent] if parent else [], history)
-        ray.kill(learner)
-        self.population.append(member)
-        return {"learners": [member], "history": {member: history}}
+    # --------------------------------------------------------------- oracle
+    def member_spec(self, member: str) -> MemberSpec:
+        """How a worker builds a member's policy: a zoo member (``zoo1:greedy``) or a population checkpoint."""
+        if member in self.zoo_specs:
+            return self.zoo_specs[member]
+        return MemberSpec(name=member, kind="checkpoint", checkpoint=str(self.checkpoint_path(member)))
 
-    def _hola_generation(self, uniform: bool) -> dict[str, Any]:
-        if not self.population:  # bootstrap: a self-play learner
-            learner = self._learner()
-            boot = self._train(learner, [], None, self.num_p)
-            member = self._register(learner, self.cfg.algorithm, [], boot)
-            ray.kill(learner)
-            self.population, self.new_learners = [member], [member]
-            return {"learners": [member], "history": {member: boot}, "matches": [], "eta": {}, "rho": {}}
-        played = ray.get(self.registry.matches.remote(run=self.run))
-        known = [tuple(t) for t in played["team"]] if len(played) else []
-        missing = hola.missing_hyperedges(self.population, self.new_learners, self.num_ctrl, self.num_partners, known)
-        matches = self._evaluate_teams([self._slot_order(k, self.new_learners) for k in missing])
-        table = ray.get(self.registry.matches.remote(run=self.run))
-        weights = {}
-        if len(table):
-            table = table[table["team"].map(lambda t: set(t) <= set(self.population))].copy()
-            table["score"] = table["SUC"] / 100.0  # a hyperedge's weight: the team's success rate
-            weights = hola.hyperedge_weights(table)
-        self.eta = hola.preference_centrality(weights, nodes=self.population)
-        candidates = list(self.population)
-        rho = hola.uniform_distribution(candidates) if uniform else hola.partner_distribution(self.eta, candidates)
-        profiles = hola.sample_profiles(rho, 8, self.num_partners, self.rng)  # logged: what the learners face
-        learners: list[str] = []
-        history: dict[str, list[dict[str, float]]] = {}
-        for _ in range(self.cfg.learners_per_generation):
-            learner = self._learner(init_from=self.new_learners[-1])
-            specs = [self.spec(m) for m in candidates]
-            h = self._train(learner, specs, [rho[m] for m in candidates], self.num_ctrl)
-            member = self._register(learner, self.cfg.algorithm, [self.new_learners[-1]], h)
-            ray.kill(learner)
-            learners.append(member)
-            history[member] = h
-        eta_all = {m: self.eta.get(m, 0.0) for m in self.population}
-        self.population, removed = hola.update_population(self.population, eta_all, learners, self.cfg.population_size)
-        for m in removed:
-            self.registry.update_member.remote(m, status="retired")
-        self.new_learners = learners
-        return {
-            "learners": learners,
-            "history": history,
-            "matches": matches,
-            "eta": dict(self.eta),
-            "rho": rho,
-            "rho_entropy": hola.distribution_entropy(rho),
-            "profiles": [list(p) for p in profiles],
-            "weights": {"|".join(k): v for k, v in weights.items()},
-            "preference": {n: list(e) for n, e in hola.preference_hypergraph(weights).items()},
-            "removed": removed,
-        }
+    def checkpoint_path(self, member: str) -> Path:
+        return (self.run_dir / "members" / f"{member}.pt").resolve()
 
-    def _pbt_generation(self) -> dict[str, Any]:
-        """Train every member against the others, then exploit/explore by team SUC."""
-        size = self.cfg.population_size
-        previous: list[str | None] = list(self.population) or [None] * size
-        new_members: list[str] = []
-        history: dict[str, list[dict[str, float]]] = {}
-        for i, parent in enumerate(previous):
-            # an exploited member continues from its winner's weights with its own perturbed hyperparameters
-            source = self.exploit_from.get(parent, parent) if parent else None
-            learner = self._learner(init_from=source, hparams=self.hparams.get(parent) if parent else None)
-            if parent is None:  # first generation: spread the hyperparameters
-                f = self.cfg.pbt_perturb ** (i - (size - 1) / 2)
-                ray.get(learner.set_hparams.remote(lr=self.ppo.lr * f, ent_coef=self.ppo.ent_coef / f))
-            others = [m for m in previous if m is not None and m != parent]
-            if others:
-                h = self._train(learner, [self.spec(m) for m in others], [1.0] * len(others), self.num_ctrl)
-            else:
-                h = self._train(learner, [], None, self.num_p)
-            member = self._register(learner, "pbt", [source] if source else [], h)
-            ray.kill(learner)
-            new_members.append(member)
-            history[member] = h
-        # fitness: each member with partners drawn from the others
-        teams = []
-        for m in new_members:
-            others = [o for o in new_members if o != m]
-            picks = self.rng.choice(len(others), size=self.num_partners)
-            teams.append((m,) * self.num_ctrl + tuple(others[j] for j in picks))
-        matches = self._evaluate_teams(teams)
-        fitness = {t["team"][0]: t["SUC"] for t in matches}
-        order = sorted(new_members, key=lambda m: fitness[m])
-        k = max(1, size // 4)
-        exploited = {}
-        for loser, winner in zip(order[:k], order[::-1][:k], strict=True):
-            if loser == winner:
-                continue
-            hp = dict(self.hparams[winner])
-            hp["lr"] *= float(self.rng.choice([1 / self.cfg.pbt_perturb, self.cfg.pbt_perturb]))
-            hp["ent_coef"] *= float(self.rng.choice([1 / self.cfg.pbt_perturb, self.cfg.pbt_perturb]))
-            self.hparams[loser] = hp
-            exploited[loser] = winner
-        self.exploit_from = exploited
-        self.population = new_members
-        return {
-            "learners": new_members,
-            "history": history,
-            "matches": matches,
-            "fitness": fitness,
-            "exploited": exploited,
-            "hparams": {m: self.hparams[m] for m in new_members},
+    def zoo_members(self, zoo: str) -> list[str]:
+        loaded = load_zoo(zoo)
+        ids = []
+        for spec in loaded.spec.members:
+            ident = f"{loaded.name}:{spec.name}"
+            self.zoo_specs[ident] = replace(spec, name=ident)
+            ids.append(ident)
+        return ids
+
+    def train(
+        self,
+        start_from: str | None,
+        partners: PartnerDistribution | None,
+        hparams: Mapping[str, float] | None = None,
+    ) -> Trained:
+        index, self.trained = self.trained, self.trained + 1
+        seed = derive_seed(self.cfg.seed, self.generation, LEARNER_STREAM, index)
+        spec = LearnerSpec(
+            ppo=self.ppo,
+            num_e=self.task.players.num_e,
+            num_p=self.num_p,
+            seed=seed,
+            total_updates=self.cfg.updates_per_generation,
+            architecture=self.architecture,
+        )
+        learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(spec)
+        if start_from is not None:
+            model, _ = load_checkpoint(self.checkpoint_path(start_from))
+            ray.get(learner.set_weights.remote(model.state_dict()))
+        if hparams:
+            ray.get(learner.set_hparams.remote(**hparams))
+        num_ctrl = self.num_p if partners is None else self.num_ctrl
+        specs = tuple(self.member_spec(m) for m in partners.members) if partners is not None else ()
+        envs = self.ppo.num_envs // len(self.workers)
+        jobs = [
+            ray.put(RolloutJob(derive_seed(seed, i), envs, num_ctrl, self.architecture, specs, partners))
+            for i in range(len(self.workers))
+        ]
+        history = []
+        for _ in range(self.cfg.updates_per_generation):
+            t0 = time.perf_counter()
+            weights = learner.get_weights.remote()  # one object ref, shared by every worker
+            fragments = [
+                w.collect.remote(job, weights, self.ppo.rollout_steps)
+                for w, job in zip(self.workers, jobs, strict=True)
+            ]
+            stats = ray.get(learner.update.remote(*fragments))
+            stats["perf/pursuer_steps_per_s"] = stats["train/samples"] / (time.perf_counter() - t0)
+            history.append(stats)
+        drawn: Counter[str] = Counter()
+        for counts in ray.get([w.drawn.remote() for w in self.workers]):
+            drawn.update(counts)
+        return Trained(
+            start_from=start_from,
+            seed=seed,
+            history=history,
+            drawn=dict(sorted(drawn.items())),
+            hparams=ray.get(learner.hparams.remote()),
+            partners=describe(partners),
+            handle=learner,
+        )
+
+    def register(self, trained: Trained, parents: Sequence[str]) -> str:
+        member = member_id(self.cfg.algorithm, self.generation, self.registered)
+        self.registered += 1
+        last = trained.history[-1] if trained.history else {}
+        path = self.checkpoint_path(member)
+        header = {
+            "name": member,
+            "task": self.task.name,
+            "num_p": self.num_p,
+            "num_e": self.task.players.num_e,
+            "algorithm": self.cfg.algorithm,
+            "config": self.cfg.to_dict(),
+            "seed": trained.seed,
+            "step": self.cfg.updates_per_generation * self.ppo.num_envs * self.ppo.rollout_steps,
+            "generation": self.generation,
+            "parents": list(parents),
+            "partners": trained.partners,
+            "metrics": {k: v for k, v in last.items() if k.startswith("train/")},
         }
+        full = ray.get(trained.handle.save.remote(str(path), header))
+        ray.kill(trained.handle)
+        ray.get(
+            self.registry.add_member.remote(
+                run=self.run,
+                algorithm=self.cfg.algorithm,
+                generation=self.generation,
+                task=self.task.name,
+                parents=list(parents),
+                checkpoint=str(path),
+                sha256=full["sha256"],
+                metrics=header["metrics"],
+                member_id=member,
+            )
+        )
+        return member
+
+    def retire(self, members: Sequence[str]) -> None:
+        ray.get([self.registry.update_member.remote(m, status="retired") for m in members])
+
+    def evaluate(self, teams: Sequence[Team]) -> list[MatchResult]:
+        """Play each team (learner id repeated num_ctrl times + partner ids) on the workers; record the matches."""
+        first, self.evaluated = self.evaluated, self.evaluated + len(teams)
+        seeds = [derive_seed(self.cfg.seed, self.generation, EVAL_STREAM, first + i) for i in range(len(teams))]
+        calls = [
+            self.workers[i % len(self.workers)].evaluate.remote(
+                self.member_spec(team[0]),
+                [self.member_spec(p) for p in team[self.num_ctrl :]],
+                self.cfg.eval_episodes,
+                seed,
+            )
+            for i, (team, seed) in enumerate(zip(teams, seeds, strict=True))
+        ]
+        results = []
+        for team, seed, result in zip(teams, seeds, ray.get(calls), strict=True):
+            ray.get(
+                self.registry.add_match.remote(
+                    list(team), self.task.name, self.run, self.generation, [seed], self.cfg.eval_episodes, result
+                )
+            )
+            results.append(MatchResult(tuple(team), dict(result), self.cfg.eval_episodes, seed))
+        return results
 
     # ------------------------------------------------------------ final eval
     def evaluate_population(self, zoo_name: str, episodes: int) -> dict[str, dict[str, float]]:
@@ -334,11 +267,16 @@ class Coordinator:
         if zoo.missing:
             return {}
         specs = list(zoo.spec.members)
+        population = self.population()
         calls = [
-            self.workers[i % len(self.workers)].evaluate_zoo.remote(self.spec(m), specs, episodes, 4242 + i)
-            for i, m in enumerate(self.population)
+            self.workers[i % len(self.workers)].evaluate_zoo.remote(self.member_spec(m), specs, episodes, 4242 + i)
+            for i, m in enumerate(population)
         ]
-        results = dict(zip(self.population, ray.get(calls), strict=True))
-        for m, res in results.items():
-            self.registry.update_member.remote(m, metrics={f"{zoo_name}/{k}": v for k, v in res.items()})
+        results = dict(zip(population, ray.get(calls), strict=True))
+        ray.get(
+            [
+                self.registry.update_member.remote(m, metrics={f"{zoo_name}/{k}": v for k, v in res.items()})
+                for m, res in results.items()
+            ]
+        )
         return results

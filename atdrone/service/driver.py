@@ -10,6 +10,7 @@ per learner. ``resume=True`` continues from the last completed generation.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -21,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from atdrone.fileio import atomic_write_bytes
+from atdrone.population.base import GenerationReport
 from atdrone.service.experiment import ExperimentConfig, registry_name
 
 log = logging.getLogger(__name__)
@@ -32,6 +34,8 @@ def _write_json(path: Path, data: Any) -> None:
 
 
 def _jsonable(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):
@@ -67,6 +71,9 @@ def run_experiment(
     ``stop_after``: stop once this many generations are complete (for tests of resume).
     """
 
+    import ray
+
+    from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
     from atdrone.service.coordinator import Coordinator
 
@@ -81,7 +88,9 @@ def run_experiment(
     _write_json(run_dir / "config.json", cfg.to_dict())
     init_ray(address, num_cpus)
     registry = registry_actor(run_dir / "registry.db", name=registry_name(cfg.name))
-    coordinator = Coordinator.remote(cfg, str(run_dir), saved.get("coordinator"), registry)
+    start = saved.get("coordinator", {}).get("generation", 0)
+    ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
+    coordinator = Coordinator.remote(cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry)
     try:
         return _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
     finally:  # the run's actors end with it; the registry's name is free for the next run
@@ -105,7 +114,7 @@ def _generations(
 
     state_path = run_dir / STATE_FILE
     tracker = Tracker(tracking_uri)
-    reports: list[dict[str, Any]] = []
+    reports: list[GenerationReport] = []
     with tracker.run(
         cfg.experiment or cfg.name, f"{cfg.name}-{cfg.algorithm}", run_id=saved.get("mlflow_run_id")
     ) as run_id:
@@ -115,16 +124,16 @@ def _generations(
         start = saved.get("coordinator", {}).get("generation", 0)
         for g in range(start, cfg.generations):
             t0 = time.perf_counter()
-            report = ray.get(coordinator.run_generation.remote())
+            report: GenerationReport = ray.get(coordinator.run_generation.remote())
             reports.append(report)
             _log_generation(tracker, report, run_dir, registry, cfg)
             state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id}
             _write_json(state_path, state)
             if progress:
-                learners = ", ".join(report["learners"])
+                learners = ", ".join(report.learners)
                 print(
                     f"[{cfg.name}] generation {g} done in {time.perf_counter() - t0:.0f}s: learners {learners}; "
-                    f"population {len(report['population'])}",
+                    f"population {len(report.population)}",
                     flush=True,
                 )
             if stop_after is not None and g + 1 >= stop_after:
@@ -151,44 +160,50 @@ def _release(coordinator: Any, registry: Any, name: str, timeout_s: float = 30.0
         time.sleep(0.1)
 
 
-def _log_generation(tracker: Any, report: dict[str, Any], run_dir: Path, registry: Any, cfg: ExperimentConfig) -> None:
+def _log_generation(
+    tracker: Any, report: GenerationReport, run_dir: Path, registry: Any, cfg: ExperimentConfig
+) -> None:
+    """A generation as a nested MLflow run: its metrics, documents, figures, and a nested run per learner."""
     import ray
 
-    g = report["generation"]
+    from atdrone.population import ALGORITHMS
+
+    g = report.generation
     gen_dir = run_dir / "generations" / f"{g:03d}"
     with tracker.run(cfg.name, f"generation-{g}", nested=True):
-        metrics = {"pop/size": len(report["population"]), "perf/generation_s": report["wall_s"]}
-        if report.get("rho"):
-            metrics["pop/rho_entropy"] = report["rho_entropy"]
-            metrics.update({f"pop/eta/{m}": v for m, v in report["eta"].items()})
-            metrics.update({f"pop/rho/{m}": v for m, v in report["rho"].items()})
-        if report.get("matches"):
-            metrics["eval/matches"] = len(report["matches"])
-            metrics["eval/SUC"] = float(np.mean([m["SUC"] for m in report["matches"]]))
-            metrics["eval/COL"] = float(np.mean([m["COL"] for m in report["matches"]]))
+        metrics = {"pop/size": len(report.population), "perf/generation_s": report.wall_s, **report.metrics}
+        if report.matches:
+            metrics["eval/matches"] = len(report.matches)
+            metrics["eval/SUC"] = float(np.mean([m.metrics["SUC"] for m in report.matches]))
+            metrics["eval/COL"] = float(np.mean([m.metrics["COL"] for m in report.matches]))
+        for t in report.training:  # partner slots each member filled in the learner's training episodes
+            slots: dict[str, int] = {}
+            for profile, n in t.drawn.items():
+                for partner in profile.split("|"):
+                    slots[partner] = slots.get(partner, 0) + n
+            metrics.update({f"pop/drawn/{t.member}/{m}": n for m, n in slots.items()})
         tracker.log_metrics(metrics, step=g)
-        if "weights" in report:
-            graph = {k: report[k] for k in ("weights", "preference", "eta", "rho", "profiles", "removed")}
-            _write_json(gen_dir / "hypergraph.json", graph)
-            tracker.log_artifact(gen_dir / "hypergraph.json")
-            if report["weights"]:
-                from atdrone.service.plots import draw_hypergraph
-
-                draw_hypergraph(report["weights"], report["preference"], report["eta"], gen_dir / "hypergraph.png")
-                tracker.log_artifact(gen_dir / "hypergraph.png")
+        for name, document in report.documents.items():
+            _write_json(gen_dir / name, document)
+            tracker.log_artifact(gen_dir / name)
+        for figure in ALGORITHMS[cfg.algorithm].figures(report, gen_dir):
+            tracker.log_artifact(figure)
         table = ray.get(registry.crossplay.remote(task=None))
         if len(table) > 1:
-            from atdrone.service.plots import crossplay_heatmap
+            from atdrone.population.plots import crossplay_heatmap
 
             crossplay_heatmap(table, gen_dir / "crossplay.png", title=f"{cfg.name} cross-play SUC, generation {g}")
             tracker.log_artifact(gen_dir / "crossplay.png")
-        for member, history in report["history"].items():
-            with tracker.run(cfg.name, f"learner-{member}", nested=True):
-                tracker.set_tags({"atdrone.member": member, "atdrone.generation": str(g)})
-                for i, row in enumerate(history):
+        for t in report.training:
+            with tracker.run(cfg.name, f"learner-{t.member}", nested=True):
+                tracker.set_tags({"atdrone.member": t.member, "atdrone.generation": str(g)})
+                tracker.log_dict(
+                    {"parent": t.parent, "seed": t.seed, "partners": t.partners, "drawn": t.drawn}, "training.json"
+                )
+                for i, row in enumerate(t.history):
                     tracker.log_metrics(row, step=i)
-                tracker.log_artifact(run_dir / "members" / f"{member}.pt", "checkpoints")
-                registry.update_member.remote(member, mlflow_run_id=tracker.mlflow.active_run().info.run_id)
+                tracker.log_artifact(run_dir / "members" / f"{t.member}.pt", "checkpoints")
+                ray.get(registry.update_member.remote(t.member, mlflow_run_id=tracker.mlflow.active_run().info.run_id))
 
 
 def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig, run_dir: Path) -> dict[str, Any]:
@@ -198,10 +213,11 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
     results = (
         ray.get(coordinator.evaluate_population.remote(cfg.final_zoo, cfg.final_episodes)) if cfg.final_zoo else {}
     )
-    state = ray.get(coordinator.state.remote())
+    state = ray.get(coordinator.state.remote())["algorithm"]
+    eta = state.get("eta", {})
     rows = []
     for m in state["population"]:
-        row = {"member": m, "eta": state["eta"].get(m, float("nan"))}
+        row = {"member": m, "eta": eta.get(m, float("nan"))}
         for k, v in results.get(m, {}).items():
             row[f"{cfg.final_zoo}_{k}"] = v
         rows.append(row)

@@ -125,8 +125,8 @@ class Match:
         """Step with the learners' actions (B, num_ctrl); partners act themselves.
 
         Returns learner observations, learner rewards (B, num_ctrl), dones (B,) and the
-        core's info, with ``final_obs`` in the learners' view and ``team``: the teams
-        of the episodes played this step (see :meth:`team`).
+        core's info, with ``final_obs`` in the learners' view, ``actions`` (B, num_p) as
+        executed and ``team``: the teams of the episodes played this step (see :meth:`team`).
         """
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
@@ -138,6 +138,7 @@ class Match:
         actions[self._rows, self.learner_slots] = learner_actions
         self.partner_actions(actions)
         obs, rewards, dones, info = self.core.step(actions)
+        info["actions"] = actions  # every slot's turn as executed: learners' and partners'
         info["final_obs"] = self.learner_view(info["final_obs"])
         info["team"] = self.team()
         if dones.any():

@@ -1,0 +1,174 @@
+"""What a population algorithm is, and what it may ask of the service.
+
+An algorithm is a class in :data:`atdrone.population.ALGORITHMS` with a typed config
+section (``Config``, a dataclass parsed from the experiment document's section named
+after the algorithm) and one :meth:`Algorithm.generation` method that reads top to
+bottom, calling the :class:`Oracle` the coordinator provides: evaluate these teams;
+train a best response from this member against this partner distribution; register
+it; retire members. Its state is plain JSON (:meth:`state` / :meth:`load_state`),
+saved after every generation; everything random in a generation comes from
+``oracle.rng`` and the seeds the oracle derives from (experiment seed, generation), so
+a resumed generation repeats exactly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+
+from atdrone.config import ConfigError, parse_document
+from atdrone.learn.ppo import PPOConfig
+from atdrone.teams.partners import PartnerDistribution
+
+Team = tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """An evaluation match: a team in slot order (the learner in its num_ctrl slots first) and its metrics."""
+
+    team: Team
+    metrics: dict[str, float]  # SUC, COL, AST, REW
+    episodes: int
+    seed: int
+
+
+@dataclass
+class Trained:
+    """A learner that finished training, before it is registered.
+
+    ``drawn``: the partner profiles ("a|b") of the episodes it trained on, as counted by
+    the rollout; ``handle`` is the oracle's own (the learner actor).
+    """
+
+    start_from: str | None
+    seed: int
+    history: list[dict[str, float]]
+    drawn: dict[str, int]
+    hparams: dict[str, float]
+    partners: dict[str, Any]
+    handle: Any = None
+
+
+@dataclass
+class TrainingRecord:
+    """What one learner of a generation trained from, against what, and how it went."""
+
+    member: str
+    parent: str | None
+    seed: int
+    partners: dict[str, Any]
+    drawn: dict[str, int]
+    history: list[dict[str, float]]
+
+
+@dataclass
+class GenerationReport:
+    """One generation: its learners, the population after it, training, matches, and the algorithm's numbers.
+
+    ``metrics``: scalars the driver logs to MLflow at the generation's step (e.g.
+    ``pop/rho/<member>``); ``documents``: JSON artifacts written to the generation's
+    folder (e.g. ``hypergraph.json``).
+    """
+
+    generation: int
+    algorithm: str
+    learners: list[str]
+    population: list[str]
+    training: list[TrainingRecord] = field(default_factory=list)
+    matches: list[MatchResult] = field(default_factory=list)
+    removed: list[str] = field(default_factory=list)
+    metrics: dict[str, float] = field(default_factory=dict)
+    documents: dict[str, dict[str, Any]] = field(default_factory=dict)
+    wall_s: float = 0.0
+
+
+class Oracle(Protocol):
+    """What the coordinator does for an algorithm (see :class:`atdrone.service.coordinator.Coordinator`)."""
+
+    generation: int
+    num_p: int
+    num_ctrl: int
+    num_partners: int
+    ppo: PPOConfig
+    rng: np.random.Generator  # this generation's, derived from (experiment seed, generation)
+
+    def evaluate(self, teams: Sequence[Team]) -> list[MatchResult]:
+        """Play each team (learner id in its num_ctrl slots, then partner ids) and record the matches."""
+        ...
+
+    def train(
+        self,
+        start_from: str | None,
+        partners: PartnerDistribution | None,
+        hparams: Mapping[str, float] | None = None,
+    ) -> Trained:
+        """A best response: a learner from ``start_from``'s weights (fresh when None) trained this generation's
+        updates against partners drawn from ``partners`` per environment and episode (self-play when None)."""
+        ...
+
+    def register(self, trained: Trained, parents: Sequence[str]) -> str:
+        """Save the trained learner as a population member (checkpoint + registry row); returns its id."""
+        ...
+
+    def retire(self, members: Sequence[str]) -> None:
+        """Mark members retired in the registry."""
+        ...
+
+    def zoo_members(self, zoo: str) -> list[str]:
+        """The ids under which a zoo's members can be partners (``zoo1:greedy`` ...)."""
+        ...
+
+
+class Algorithm:
+    """Base of the table's algorithms: a config section, a population and one generation method."""
+
+    name: ClassVar[str]
+    Config: ClassVar[type]
+
+    def __init__(self, config: Any, seed: int) -> None:
+        self.config = config
+        self.seed = seed
+        self.population: list[str] = []
+
+    @classmethod
+    def parse_config(cls, section: Mapping[str, Any], path: str) -> Any:
+        """The typed config section; ConfigError naming ``path.key`` when invalid."""
+        cfg = parse_document(cls.Config, dict(section), path)
+        cls.check_config(cfg, path)
+        return cfg
+
+    @classmethod
+    def check_config(cls, cfg: Any, path: str) -> None:
+        """Further checks of a parsed section (raise ConfigError)."""
+
+    def generation(self, oracle: Oracle) -> GenerationReport:
+        raise NotImplementedError
+
+    def state(self) -> dict[str, Any]:
+        """JSON state to continue after the last completed generation."""
+        return {"population": list(self.population)}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        self.population = list(state.get("population", []))
+
+    @classmethod
+    def figures(cls, report: GenerationReport, out_dir: Path) -> list[Path]:
+        """Pictures of a generation (drawn in the driver); none by default."""
+        return []
+
+
+def require_population(cfg: Any, path: str, minimum: int = 2) -> None:
+    if cfg.population_size < minimum:
+        raise ConfigError(
+            f"{path}.population_size", f"a population needs at least {minimum} members, got {cfg.population_size}"
+        )
+
+
+def record(member: str, trained: Trained) -> TrainingRecord:
+    """The report's record of a registered learner."""
+    return TrainingRecord(member, trained.start_from, trained.seed, trained.partners, trained.drawn, trained.history)

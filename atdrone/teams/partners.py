@@ -1,0 +1,79 @@
+"""Partner distributions: how each episode's partner slots are filled from named members.
+
+An algorithm hands one of these to the rollout; the rollout draws from it per
+environment and per episode (through :class:`~atdrone.teams.match.Match`'s sampler)
+and records what it drew. ``members`` names the pool (population member ids or zoo
+members); ``draw`` returns indices into it. Any class with these two members plugs in.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from atdrone.teams.match import PartnerSampler
+
+
+@runtime_checkable
+class PartnerDistribution(Protocol):
+    """A distribution over the partner slots of an episode."""
+
+    @property
+    def members(self) -> tuple[str, ...]:
+        """The pool's member ids."""
+        ...
+
+    def draw(self, rng: np.random.Generator, n: int, slots: int) -> np.ndarray:
+        """(n, slots) indices into ``members`` for n fresh episodes."""
+        ...
+
+
+@dataclass(frozen=True)
+class Uniform:
+    """Every slot drawn uniformly and independently from ``members``."""
+
+    members: tuple[str, ...]
+
+    def draw(self, rng: np.random.Generator, n: int, slots: int) -> np.ndarray:
+        return rng.integers(len(self.members), size=(n, slots))
+
+
+@dataclass(frozen=True)
+class Weighted:
+    """Every slot drawn independently from ``members`` with probabilities ``probs``."""
+
+    members: tuple[str, ...]
+    probs: tuple[float, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.probs, dtype=np.float64)
+        if len(p) != len(self.members) or np.any(p < 0) or not p.sum() > 0:
+            raise ValueError(f"probs must be {len(self.members)} non-negative weights, not all 0; got {self.probs}")
+
+    def draw(self, rng: np.random.Generator, n: int, slots: int) -> np.ndarray:
+        p = np.asarray(self.probs, dtype=np.float64)
+        return rng.choice(len(self.members), size=(n, slots), p=p / p.sum())
+
+
+def describe(dist: PartnerDistribution | None) -> dict[str, Any]:
+    """A JSON summary of a distribution (its class, members and, when weighted, probabilities)."""
+    if dist is None:
+        return {"kind": "self-play"}
+    out: dict[str, Any] = {"kind": type(dist).__name__, "members": list(dist.members)}
+    if hasattr(dist, "probs"):
+        out["probs"] = [float(p) for p in dist.probs]
+    return out
+
+
+def as_sampler(dist: PartnerDistribution, slots: int) -> PartnerSampler:
+    """The Match sampler that draws ``slots`` partners per episode from ``dist``."""
+    return lambda rng, n: dist.draw(rng, n, slots)
+
+
+def weighted(weights: dict[str, float], members: Sequence[str] | None = None) -> Weighted:
+    """A Weighted distribution from a {member: weight} mapping (in ``members`` order when given)."""
+    ids = tuple(members if members is not None else weights)
+    return Weighted(ids, tuple(float(weights[m]) for m in ids))
