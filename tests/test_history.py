@@ -50,7 +50,8 @@ def _short_task(horizon: int = 12):
 
 
 def test_rollout_inputs_hold_the_previous_frame_and_action():
-    worker = RolloutWorker(_short_task(), num_envs=3, seed=0, net=NetConfig(entity_dim=8, hidden=16, history=1))
+    arch = ActorCritic(NetConfig(entity_dim=8, hidden=16, history=1)).architecture()
+    worker = RolloutWorker(_short_task(), 0, arch, ppo_config(), num_envs=3)
     frag = worker.collect(30)
     D = worker.core.obs_dim
     assert frag.obs.shape == (30, 3, 4, input_dim(D, 1))

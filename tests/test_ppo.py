@@ -183,7 +183,9 @@ def test_resume_continues_from_saved_step_with_equal_parameters(tmp_path):
     for (name, a), (_, b) in zip(first.model.state_dict().items(), second.model.state_dict().items(), strict=True):
         assert torch.equal(a, b), name
     moments = zip(
-        first.optimizer.state_dict()["state"].values(), second.optimizer.state_dict()["state"].values(), strict=True
+        first.learner.optimizer.state_dict()["state"].values(),
+        second.learner.optimizer.state_dict()["state"].values(),
+        strict=True,
     )
     for a, b in moments:
         assert torch.equal(a["exp_avg"], b["exp_avg"])

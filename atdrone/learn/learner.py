@@ -187,7 +187,8 @@ class Learner:
                 state.setdefault(int(idx), {})[name] = value.to(self.device)
         for idx, slots in doc["optimizer"]["scalars"].items():
             state.setdefault(int(idx), {}).update(slots)
-        self.optimizer.load_state_dict({"state": state, "param_groups": doc["optimizer"]["param_groups"]})
+        ordered = dict(sorted(state.items()))  # parameter order, as the optimiser saved it
+        self.optimizer.load_state_dict({"state": ordered, "param_groups": doc["optimizer"]["param_groups"]})
         self.updates = int(doc["updates"])
         self.hparams = {k: float(v) for k, v in doc["hparams"].items()}
 

@@ -11,6 +11,7 @@ actor is a :class:`~atdrone.learn.learner.Learner`, on a GPU when the actor was 
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -51,6 +52,7 @@ class RolloutJob:
     """
 
     seed: int
+    ppo: PPOConfig
     num_envs: int
     num_ctrl: int
     architecture: dict[str, Any]
@@ -62,9 +64,9 @@ class RolloutJob:
 class RolloutWorkerActor:
     """Collects fragments for one training job at a time, and plays evaluation matches."""
 
-    def __init__(self, task: TaskConfig, ppo: PPOConfig) -> None:
+    def __init__(self, task: TaskConfig) -> None:
         torch.set_num_threads(1)
-        self.task, self.ppo = task, ppo
+        self.task = task
         self.policies = PolicyCache()
         self.worker: RolloutWorker | None = None
         self.job: RolloutJob | None = None
@@ -82,7 +84,7 @@ class RolloutWorkerActor:
             self.task,
             job.seed,
             job.architecture,
-            self.ppo,
+            job.ppo,
             partners=[self.policies.get(s) for s in job.partners],
             num_ctrl=job.num_ctrl,
             sampler=sampler,
@@ -152,3 +154,25 @@ class LearnerActor:
     def save(self, path: str, header: dict[str, Any]) -> dict[str, Any]:
         """Write the current weights as a checkpoint; returns the full header (with sha256)."""
         return save_checkpoint(path, self.learner.model, header)
+
+
+def run_updates(
+    learner: Any, workers: Sequence[Any], jobs: Sequence[Any], updates: int, steps: int
+) -> list[dict[str, float]]:
+    """``updates`` learner updates, each on one fragment of ``steps`` steps per worker (worker i runs jobs[i]).
+
+    Each worker starts its job afresh first, so the same jobs give the same fragments.
+
+    The weights go out once per update as one object ref shared by every worker; the
+    fragments go to the learner as refs, joined in worker order.
+    """
+    ray.get([w.start.remote(job) for w, job in zip(workers, jobs, strict=True)])  # fresh environments per job
+    history = []
+    for _ in range(updates):
+        t0 = time.perf_counter()
+        weights = learner.get_weights.remote()
+        fragments = [w.collect.remote(job, weights, steps) for w, job in zip(workers, jobs, strict=True)]
+        stats = ray.get(learner.update.remote(*fragments))
+        stats["perf/pursuer_steps_per_s"] = stats["train/samples"] / (time.perf_counter() - t0)
+        history.append(stats)
+    return history

@@ -38,7 +38,7 @@ from atdrone.models.checkpoint import load_checkpoint
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Team, Trained
 from atdrone.registry import find_registry_actor
-from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor
+from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor, run_updates
 from atdrone.service.experiment import ExperimentConfig, registry_name
 from atdrone.teams.partners import PartnerDistribution, describe
 
@@ -80,7 +80,7 @@ class Coordinator:
         self.num_p = self.task.players.num_p
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl
-        self.workers = [RolloutWorkerActor.remote(self.task, self.ppo) for _ in range(cfg.num_workers)]
+        self.workers = [RolloutWorkerActor.remote(self.task) for _ in range(cfg.num_workers)]
         self.algorithm = algorithm(cfg.algorithm_config(), cfg.seed)
         state = dict(state or {})
         self.generation: int = state.get("generation", 0)
@@ -171,20 +171,10 @@ class Coordinator:
         specs = tuple(self.member_spec(m) for m in partners.members) if partners is not None else ()
         envs = self.ppo.num_envs // len(self.workers)
         jobs = [
-            ray.put(RolloutJob(derive_seed(seed, i), envs, num_ctrl, self.architecture, specs, partners))
+            ray.put(RolloutJob(derive_seed(seed, i), self.ppo, envs, num_ctrl, self.architecture, specs, partners))
             for i in range(len(self.workers))
         ]
-        history = []
-        for _ in range(self.cfg.updates_per_generation):
-            t0 = time.perf_counter()
-            weights = learner.get_weights.remote()  # one object ref, shared by every worker
-            fragments = [
-                w.collect.remote(job, weights, self.ppo.rollout_steps)
-                for w, job in zip(self.workers, jobs, strict=True)
-            ]
-            stats = ray.get(learner.update.remote(*fragments))
-            stats["perf/pursuer_steps_per_s"] = stats["train/samples"] / (time.perf_counter() - t0)
-            history.append(stats)
+        history = run_updates(learner, self.workers, jobs, self.cfg.updates_per_generation, self.ppo.rollout_steps)
         drawn: Counter[str] = Counter()
         for counts in ray.get([w.drawn.remote() for w in self.workers]):
             drawn.update(counts)
