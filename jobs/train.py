@@ -2,7 +2,7 @@
 
     ray job submit --address http://HEAD:8265 --working-dir . -- \
         python jobs/train.py configs/experiments/hola_quick.json [--resume] [--generations N] [--name X] \
-        [--out-dir /shared/runs] [--tracking-uri URI] [--updates-per-generation N] ...
+        [--out-dir /shared/runs] [--tracking-uri URI] [--updates-per-generation N] [--ppo '{"num_envs": 64}'] ...
 
 Inside a Ray job RAY_ADDRESS is set, so ``atdrone.service.driver.run_experiment`` joins
 the cluster instead of starting a local Ray; run outside a job it starts a local Ray
@@ -17,6 +17,7 @@ Bad input exits with status 2 and a one-line error.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -49,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--address", default=None, help="Ray address (default: $RAY_ADDRESS, set inside a Ray job)")
     p.add_argument("--final-zoo", "--final_zoo", dest="final_zoo", default=None, help="override the final zoo")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF of the best member")
+    p.add_argument("--ppo", default=None, help="PPO overrides as JSON, merged over the config's ppo section")
     for key in INT_OVERRIDES:
         flag = key.replace("_", "-")
         names = [f"--{flag}"] + ([f"--{key}"] if flag != key else [])
@@ -58,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from atdrone.config import ConfigError
+    from atdrone.config import ConfigError, read_document
     from atdrone.service.driver import format_summary, run_experiment
     from atdrone.service.experiment import load_experiment
 
@@ -67,6 +69,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_gif:
         overrides["gif"] = False
     try:
+        if args.ppo is not None:
+            try:
+                extra = json.loads(args.ppo)
+            except json.JSONDecodeError as exc:
+                raise ConfigError("ppo", f"--ppo is not JSON: {exc}") from None
+            if not isinstance(extra, dict):
+                raise ConfigError("ppo", "--ppo must be a JSON object")
+            overrides["ppo"] = {**read_document(args.config, "experiments").get("ppo", {}), **extra}
         cfg = load_experiment(args.config, **overrides)
     except ConfigError as exc:
         print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)

@@ -36,7 +36,7 @@ TRAIN = REPO / "jobs" / "train.py"
 EXCLUDES = [".venv", "runs", "*.db", ".git", "mlruns", "demo_out", "eval_out"]
 # a one-generation HOLA-Drone V2 run small enough for a 2-core machine
 TINY_TRAIN = (
-    "--generations 1 --updates-per-generation 1 --num-workers 1 --envs-per-worker 4 --rollout-steps 16 "
+    '--generations 1 --updates-per-generation 1 --num-workers 1 --ppo \'{"num_envs": 4, "rollout_steps": 16}\' '
     "--eval-episodes 2 --final-episodes 2 --final-zoo zoo1 --no-gif"
 )
 
@@ -84,7 +84,7 @@ def _load_script(path: Path) -> ModuleType:
         (EVALUATE, ["--policy", "no_such_policy.pt", "--episodes", "5"], "no_such_policy.pt"),
         (EVALUATE, ["--policy", "greedy", "--zoo", "zoo9", "--episodes", "5"], "zoo9"),
         (TRAIN, ["configs/experiments/hola_quick.json", "--final-zoo", "zoo9"], "final_zoo"),
-        (TRAIN, ["configs/experiments/hola_quick.json", "--rollout_steps", "0"], "rollout_steps"),
+        (TRAIN, ["configs/experiments/hola_quick.json", "--updates_per_generation", "0"], "updates_per_generation"),
         (TRAIN, ["configs/experiments/no_such.json"], "no_such"),
     ],
 )

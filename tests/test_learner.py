@@ -166,11 +166,11 @@ def test_experiment_refuses_ppo_num_envs_that_workers_cannot_split():
     from atdrone.service.experiment import load_experiment
 
     doc = {"name": "x", "algorithm": "sp", "task": "4p2e1o", "num_workers": 3, "ppo": {"num_envs": 64}}
-    with pytest.raises(ConfigError, match="ppo.num_envs"):
+    with pytest.raises(ConfigError, match=r"ppo\.num_envs"):
         load_experiment(doc)
     with pytest.raises(ConfigError, match="envs_per_worker: moved"):
         load_experiment({**doc, "num_workers": 2, "envs_per_worker": 32})
-    with pytest.raises(ConfigError, match="hola.population_size"):
+    with pytest.raises(ConfigError, match=r"hola\.population_size"):
         load_experiment({**doc, "num_workers": 2, "algorithm": "hola", "hola": {"population_size": 1}})
 
 
