@@ -3,13 +3,23 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
 import time
+from dataclasses import dataclass
 
 import mlflow
+import numpy as np
 import pytest
 import ray
 
+from atdrone.config import ConfigError
 from atdrone.models.checkpoint import read_header
+from atdrone.population import ALGORITHMS
+from atdrone.population.base import Algorithm, GenerationReport, record
 from atdrone.registry import Registry
 from atdrone.service.driver import STATE_FILE, run_experiment
 from atdrone.service.experiment import load_experiment
@@ -168,3 +178,126 @@ def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_
     assert all(p.startswith("zoo1:") for profile in trained.drawn for p in profile.split("|"))
     assert read_header(tmp_path / "br_t" / "members" / f"{member}.pt")["algorithm"] == "br"
     assert summary["population"].loc[0, "zoo1_SUC"] >= 0.0
+
+
+# ------------------------------------------------------------------ an algorithm from outside the package
+@dataclass(frozen=True)
+class FixedPartnersConfig:
+    """zoo and member: the one partner every slot gets."""
+
+    zoo: str = "zoo1"
+    member: str = "vicsek"
+
+
+@dataclass(frozen=True)
+class FixedList:
+    """Partners from a fixed list: partner slot i of every episode gets members[i % len(members)]."""
+
+    members: tuple[str, ...]
+
+    def draw(self, rng: np.random.Generator, n: int, slots: int) -> np.ndarray:
+        return np.tile(np.arange(slots) % len(self.members), (n, 1))
+
+
+class FixedPartners(Algorithm):
+    """Each generation continues the last member against one fixed zoo partner."""
+
+    name = "fixed"
+    Config = FixedPartnersConfig
+
+    def generation(self, oracle):
+        parent = self.population[-1] if self.population else None
+        (partner,) = [m for m in oracle.zoo_members(self.config.zoo) if m.endswith(f":{self.config.member}")]
+        trained = oracle.train(parent, FixedList((partner,)))
+        member = oracle.register(trained, [parent] if parent else [])
+        self.population.append(member)
+        return GenerationReport(
+            oracle.generation, self.name, [member], list(self.population), [record(member, trained)]
+        )
+
+
+def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path, monkeypatch):
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray ships this module's classes by value
+    monkeypatch.setitem(ALGORITHMS, "fixed", FixedPartners)
+    cfg = _cfg(tmp_path, "fixed_t", algorithm="fixed", generations=2, fixed={"member": "greedy"}, final_zoo="")
+    assert cfg.algorithm_config() == FixedPartnersConfig(member="greedy")
+    summary = run_experiment(cfg, tracking_uri=f"sqlite:///{tmp_path}/mlflow.db", progress=False)
+    first, second = summary["reports"]
+    assert second.population == [first.learners[0], second.learners[0]]
+    assert second.training[0].parent == first.learners[0]
+    for report in (first, second):
+        (trained,) = report.training
+        assert trained.partners == {"kind": "FixedList", "members": ["zoo1:greedy"]}
+        assert set(trained.drawn) == {"zoo1:greedy|zoo1:greedy"}  # what the rollout drew, per episode
+    members = Registry(tmp_path / "fixed_t" / "registry.db").members(run="fixed_t")
+    assert list(members["algorithm"]) == ["fixed", "fixed"]
+    with pytest.raises(ConfigError, match=r"fixed\.colour"):
+        _cfg(tmp_path, "fixed_bad", algorithm="fixed", fixed={"colour": "red"})
+
+
+# ------------------------------------------------------------------ exact resume after SIGKILL
+RESUME = {
+    "algorithm": "hola",
+    "generations": 3,
+    "updates_per_generation": 4,
+    "hola": {"population_size": 3},
+    "final_zoo": "zoo1",
+    "ppo": {**TINY["ppo"], "rollout_steps": 32},
+}
+
+
+def _rows(run_dir, run: str) -> dict[str, list[dict]]:
+    """The registry's rows without timestamps, MLflow run ids and the run directory."""
+    reg = Registry(run_dir / "registry.db")
+    members = reg.members(run=run).drop(columns=["created", "mlflow_run_id"])
+    members["checkpoint"] = [str(c).replace(str(run_dir), "RUN") for c in members["checkpoint"]]
+    matches = reg.matches(run=run).drop(columns=["created"])
+    generations = reg.generations(run=run).drop(columns=["started", "finished"])
+    frames = {"members": members, "matches": matches, "generations": generations}
+    return {k: json.loads(v.to_json(orient="records")) for k, v in frames.items()}
+
+
+def test_a_run_killed_mid_generation_and_resumed_ends_as_an_uninterrupted_run(local_ray, tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    reference = _cfg(tmp_path / "a", "exact_t", **RESUME)
+    run_experiment(reference, tracking_uri=uri, progress=False)
+
+    doc = {**TINY, **RESUME, "name": "exact_t", "out_dir": str(tmp_path / "b")}
+    script = (
+        "import json, sys; from atdrone.service.driver import run_experiment; "
+        "from atdrone.service.experiment import load_experiment; "
+        f"run_experiment(load_experiment(json.loads(sys.argv[1])), tracking_uri={uri!r}, progress=False, num_cpus=2)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script, json.dumps(doc)], start_new_session=True)
+    db = tmp_path / "b" / "exact_t" / "registry.db"
+    deadline = time.monotonic() + 240
+    try:  # kill it once generation 2 has played its matches and is training
+        while time.monotonic() < deadline and proc.poll() is None:
+            if db.exists():
+                with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as conn:
+                    if conn.execute("SELECT COUNT(*) FROM matches WHERE generation = 2").fetchone()[0]:
+                        break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run ended before it could be killed"
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    run_dir = tmp_path / "b" / "exact_t"
+    saved = json.loads((run_dir / STATE_FILE).read_text())
+    assert saved["coordinator"]["generation"] == 2  # killed inside generation 2
+    assert len(_rows(run_dir, "exact_t")["matches"]) > len(
+        [m for m in _rows(tmp_path / "a" / "exact_t", "exact_t")["matches"] if m["generation"] < 2]
+    )  # it left rows of the unfinished generation behind
+
+    resumed = run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)
+    assert [r.generation for r in resumed["reports"]] == [2]
+    got, want = _rows(run_dir, "exact_t"), _rows(tmp_path / "a" / "exact_t", "exact_t")
+    diff = [
+        (t, i, k, r[k], want[t][i][k]) for t in got for i, r in enumerate(got[t]) for k in r if r[k] != want[t][i][k]
+    ]
+    assert got == want, diff
+    ref_members = Registry(tmp_path / "a" / "exact_t" / "registry.db").members(run="exact_t")
+    for _, m in ref_members.iterrows():
+        assert read_header(run_dir / "members" / f"{m['id']}.pt")["sha256"] == m["sha256"]
+    ref_state = json.loads((tmp_path / "a" / "exact_t" / STATE_FILE).read_text())
+    assert json.loads((run_dir / STATE_FILE).read_text())["coordinator"] == ref_state["coordinator"]

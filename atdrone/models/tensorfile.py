@@ -43,7 +43,8 @@ def tensor_digest(tensors: Mapping[str, torch.Tensor]) -> str:
 def encode(tensors: Mapping[str, torch.Tensor], document: Mapping[str, Any]) -> bytes:
     """The bytes of a tensor file holding ``tensors`` and the JSON ``document``."""
     clean = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
-    meta = {DOC_KEY: json.dumps(document, sort_keys=True), DIGEST_KEY: tensor_digest(clean)}
+    # one metadata key: safetensors writes its metadata map in no fixed order, and the bytes must not vary
+    meta = {DOC_KEY: json.dumps({"document": document, DIGEST_KEY: tensor_digest(clean)}, sort_keys=True)}
     return st_save(clean, metadata=meta)
 
 
@@ -53,8 +54,11 @@ def decode(data: bytes, source: str = "<bytes>") -> tuple[dict[str, torch.Tensor
         tensors = st_load(data)
         header_len = int.from_bytes(data[:8], "little")
         meta = json.loads(data[8 : 8 + header_len]).get("__metadata__", {})
-        document = json.loads(meta[DOC_KEY])
-        digest = meta[DIGEST_KEY]
+        if DIGEST_KEY in meta:  # the first layout: document and digest under two keys
+            document, digest = json.loads(meta[DOC_KEY]), meta[DIGEST_KEY]
+        else:
+            both = json.loads(meta[DOC_KEY])
+            document, digest = both["document"], both[DIGEST_KEY]
     except Exception as exc:  # safetensors, JSON and key errors alike
         raise TensorFileError(f"{source}: not a readable atdrone tensor file ({type(exc).__name__}: {exc})") from None
     if tensor_digest(tensors) != digest:

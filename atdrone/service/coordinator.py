@@ -81,7 +81,7 @@ class Coordinator:
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl
         self.workers = [RolloutWorkerActor.remote(self.task) for _ in range(cfg.num_workers)]
-        self.algorithm = algorithm(cfg.algorithm_config(), cfg.seed)
+        self.algorithm = algorithm(algorithm.parse_config(cfg.section, cfg.algorithm), cfg.seed)
         state = dict(state or {})
         self.generation: int = state.get("generation", 0)
         if "algorithm" in state:
