@@ -52,7 +52,7 @@ def main() -> None:
                     "seed": seed,
                     "generations": args.generations,
                     "updates_per_generation": args.updates,
-                    "envs_per_worker": args.envs_per_worker,
+                    "ppo": {"num_envs": 2 * args.envs_per_worker},
                     "final_zoo": "",
                     "gif": False,
                     "out_dir": str(out / "runs"),
@@ -60,7 +60,7 @@ def main() -> None:
             )
             t0 = time.perf_counter()
             summary = run_experiment(cfg, progress=False)
-            final = summary["reports"][-1]["learners"][-1]
+            final = summary["reports"][-1].learners[-1]
             policy = load_policy(Path(summary["run_dir"]) / "members" / f"{final}.pt")
             result = evaluate(policy, args.task, args.zoo, episodes=args.episodes, seeds=[seed])
             row = {"algorithm": algorithm, "seed": seed, "member": final, **result.mean}
