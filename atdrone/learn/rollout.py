@@ -163,8 +163,10 @@ class RolloutWorker:
     def inputs(self, obs: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Network inputs (n, k, input_dim) of learner observations (n, k, D) of envs ``rows`` (default all)."""
         n, k, D = obs.shape
-        env = self._rows if rows is None else np.repeat(rows, k)
-        key = np.tile(np.arange(k), n)
+        if rows is None:
+            env, key = self._rows, self._keys
+        else:
+            env, key = np.repeat(rows, k), np.tile(np.arange(k), n)
         return self.memory.inputs(obs.reshape(n * k, D), env, key).reshape(n, k, -1)
 
     def set_weights(self, state_dict: dict[str, torch.Tensor]) -> None:

@@ -203,7 +203,8 @@ class Trainer:
         cpu = build_model(self.model.architecture())
         cpu.load_state_dict(self.learner.get_weights())
         cpu.eval()
-        return NeuralPolicy(cpu, name=self.cfg.name, deterministic=deterministic, num_e=self.task.players.num_e)
+        players = self.task.players
+        return NeuralPolicy(cpu, self.cfg.name, deterministic, num_p=players.num_p, num_e=players.num_e)
 
     def evaluate(self, episodes: int, seed: int = 12345) -> dict[str, float]:
         """SUC/COL/AST/REW of the current policy: self-play (all slots) or with the zoo."""

@@ -128,8 +128,8 @@ class RolloutWorkerActor:
 class LearnerActor:
     """A :class:`~atdrone.learn.learner.Learner` behind Ray: the same object as the local trainer's."""
 
-    def __init__(self, spec: LearnerSpec) -> None:
-        torch.set_num_threads(1)
+    def __init__(self, spec: LearnerSpec, threads: int = 1) -> None:
+        torch.set_num_threads(threads)  # the rollout workers are idle while a learner updates
         self.learner = Learner(spec)
 
     def get_weights(self) -> dict[str, torch.Tensor]:

@@ -161,7 +161,7 @@ class Coordinator:
             total_updates=self.cfg.updates_per_generation,
             architecture=self.architecture,
         )
-        learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(spec)
+        learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(spec, self.cfg.learner_threads)
         if start_from is not None:
             model, _ = load_checkpoint(self.checkpoint_path(start_from))
             ray.get(learner.set_weights.remote(model.state_dict()))

@@ -246,7 +246,7 @@ def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> 
         from atdrone.policies.neural import NeuralPolicy
         from atdrone.teams.replay import record_episode
 
-        policy = NeuralPolicy(model, name=best)
+        policy = NeuralPolicy(model, name=best, num_p=header["num_p"], num_e=header["num_e"])
         frames, _ = record_episode(cfg.task, seed=cfg.seed, policy=policy, frame_every=4, max_steps=400)
         gif = run_dir / "best.gif"
         save_gif(frames, gif, fps=10)

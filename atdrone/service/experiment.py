@@ -27,7 +27,14 @@ from atdrone.learn.ppo import ppo_config
 from atdrone.policies.zoo import load_zoo
 
 # integer settings that must be >= 1 (jobs/train.py also offers them as overrides)
-POSITIVE_INTS = ("generations", "updates_per_generation", "num_workers", "eval_episodes", "final_episodes")
+POSITIVE_INTS = (
+    "generations",
+    "updates_per_generation",
+    "num_workers",
+    "eval_episodes",
+    "final_episodes",
+    "learner_threads",
+)
 # keys of earlier, flat documents -> where they live now
 MOVED = {
     "population_size": 'the algorithm\'s section, e.g. "hola": {"population_size": 4}',
@@ -51,7 +58,9 @@ class ExperimentConfig:
     ppo.num_envs. eval_episodes: episodes per evaluation match. final_zoo /
     final_episodes: the zoo every member is evaluated on at the end (empty: skip).
     ppo: overrides of the PPO preset. learner_gpus: GPUs each learner actor asks Ray
-    for (its update then runs on CUDA; 0: CPU). experiment: the MLflow experiment
+    for (its update then runs on CUDA; 0: CPU); learner_threads: torch threads of a
+    learner's update on the CPU (the rollout workers are idle while it runs, as in the
+    local trainer's update_threads). experiment: the MLflow experiment
     (default: the config's own name, kept when a run is renamed with an override).
     """
 
@@ -70,6 +79,7 @@ class ExperimentConfig:
     out_dir: str = "runs"
     gif: bool = True
     learner_gpus: float = 0.0
+    learner_threads: int = 2
     experiment: str = field(default="", metadata=OPTIONAL)
     section: dict[str, Any] = field(default_factory=dict)
 
