@@ -110,10 +110,15 @@ def default_path() -> Path:
     return Path(os.environ.get(ENV_VAR) or DEFAULT_PATH)
 
 
-def new_member_id(algorithm: str, generation: int) -> str:
-    """A fresh member id such as ``hola-g3-a1b2c3`` (algorithm slug, generation, 6 random hex digits)."""
+def member_id(algorithm: str, generation: int, suffix: object) -> str:
+    """A member id ``<algorithm slug>-g<generation>-<suffix>``, e.g. ``hola-g3-0``."""
     slug = re.sub(r"[^a-z0-9]+", "-", algorithm.lower()).strip("-") or "member"
-    return f"{slug}-g{generation}-{secrets.token_hex(3)}"
+    return f"{slug}-g{generation}-{suffix}"
+
+
+def new_member_id(algorithm: str, generation: int) -> str:
+    """A fresh member id such as ``hola-g3-a1b2c3`` (6 random hex digits as the suffix)."""
+    return member_id(algorithm, generation, secrets.token_hex(3))
 
 
 def _now() -> str:

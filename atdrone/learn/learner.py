@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from atdrone.learn.ppo import PPOConfig, learning_rate, net_config, ppo_update
+from atdrone.learn.ppo import PPOConfig, architecture, learning_rate, ppo_update
 from atdrone.learn.rollout import Fragment, concat_fragments
 from atdrone.models import PolicyModel, build_model
 from atdrone.models.tensorfile import load_tensors, save_tensors
@@ -81,7 +81,7 @@ class LearnerSpec:
         """The model's architecture header: given, or the PPO config's network."""
         if self.architecture:
             return dict(self.architecture)
-        return {"class": "ActorCritic", **asdict(net_config(self.ppo, self.centralised_critic))}
+        return architecture(self.ppo, self.centralised_critic)
 
 
 class Learner:

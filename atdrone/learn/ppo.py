@@ -16,7 +16,7 @@ from torch import nn
 
 from atdrone.config import ConfigError, parse_document
 from atdrone.models import PolicyModel
-from atdrone.models.networks import NetConfig, squash_log_prob
+from atdrone.models.networks import ActorCritic, NetConfig, squash_log_prob
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,11 @@ def net_config(cfg: PPOConfig, centralised_critic: bool = False) -> NetConfig:
         proximity=cfg.proximity,
         history=cfg.history,
     )
+
+
+def architecture(cfg: PPOConfig, centralised_critic: bool = False) -> dict[str, Any]:
+    """The architecture header (see :mod:`atdrone.models.architectures`) of the network a PPO config asks for."""
+    return ActorCritic.header(net_config(cfg, centralised_critic))
 
 
 def _as_dict(cfg: PPOConfig) -> dict[str, Any]:

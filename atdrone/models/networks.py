@@ -186,7 +186,12 @@ class ActorCritic(nn.Module):
         return self.global_encoder is not None
 
     def architecture(self) -> dict[str, Any]:
-        return {"class": "ActorCritic", **asdict(self.cfg)}
+        return self.header(self.cfg)
+
+    @staticmethod
+    def header(cfg: NetConfig) -> dict[str, Any]:
+        """The checkpoint header's architecture entry of an ActorCritic with ``cfg``."""
+        return {"class": "ActorCritic", **asdict(cfg)}
 
     def memory(self, num_envs: int, num_keys: int, obs_dim: int) -> DroneMemory:
         """Past frames and actions when the network reads them (``history`` > 0), else the observation alone."""

@@ -121,7 +121,7 @@ class Hola(Algorithm):
         return GenerationReport(oracle.generation, self.name, [member], [member], training=[record(member, trained)])
 
     def _weights(self) -> dict[Team, float]:
-        table = pd.DataFrame([m for m in self.matches if set(m["team"]) <= set(self.population)])
+        table = pd.DataFrame(self.matches)  # pruned to the population's teams at every population update
         if not len(table):
             return {}
         table["score"] = table["SUC"] / 100.0

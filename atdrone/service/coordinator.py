@@ -20,11 +20,10 @@ run killed mid-generation and resumed ends exactly as an uninterrupted one.
 
 from __future__ import annotations
 
-import re
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +32,11 @@ import ray
 
 from atdrone.config import load_task
 from atdrone.learn.learner import LearnerSpec
-from atdrone.learn.ppo import net_config, ppo_config
+from atdrone.learn.ppo import architecture, ppo_config
 from atdrone.models.checkpoint import load_checkpoint
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Team, Trained
-from atdrone.registry import find_registry_actor
+from atdrone.registry import find_registry_actor, member_id
 from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor, run_updates
 from atdrone.service.experiment import ExperimentConfig, registry_name
 from atdrone.teams.partners import PartnerDistribution, describe
@@ -49,12 +48,6 @@ LEARNER_STREAM, EVAL_STREAM, RNG_STREAM = 0, 1, 2
 def derive_seed(*parts: int) -> int:
     """A reproducible 31-bit seed from integers (numpy's SeedSequence)."""
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0] % 2**31)
-
-
-def member_id(algorithm: str, generation: int, index: int) -> str:
-    """The id of a generation's index-th registered learner, e.g. ``hola-g3-0``: the same on every run of a config."""
-    slug = re.sub(r"[^a-z0-9]+", "-", algorithm.lower()).strip("-") or "member"
-    return f"{slug}-g{generation}-{index}"
 
 
 @ray.remote(num_cpus=0, max_restarts=0)
@@ -74,7 +67,7 @@ class Coordinator:
         self.run_dir = Path(run_dir)
         self.task = load_task(cfg.task)
         self.ppo = ppo_config(cfg.ppo, cfg.preset)
-        self.architecture = {"class": "ActorCritic", **asdict(net_config(self.ppo))}
+        self.architecture = architecture(self.ppo)
         # the run's registry actor: passed in (the handle keeps it alive) or found by name
         self.registry = registry if registry is not None else find_registry_actor(registry_name(cfg.name))
         self.num_p = self.task.players.num_p

@@ -10,7 +10,6 @@ per learner. ``resume=True`` continues from the last completed generation.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import os
@@ -34,8 +33,6 @@ def _write_json(path: Path, data: Any) -> None:
 
 
 def _jsonable(value: Any) -> Any:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return dataclasses.asdict(value)
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):
