@@ -257,6 +257,17 @@ def _rows(run_dir, run: str) -> dict[str, list[dict]]:
     return {k: json.loads(v.to_json(orient="records")) for k, v in frames.items()}
 
 
+def _matches_of_generation(db, generation: int) -> int:
+    """Matches of ``generation`` in a registry file being written (0 until its tables exist)."""
+    if not db.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as conn:
+            return conn.execute("SELECT COUNT(*) FROM matches WHERE generation = ?", (generation,)).fetchone()[0]
+    except sqlite3.OperationalError:  # the file exists before its schema does
+        return 0
+
+
 def test_a_run_killed_mid_generation_and_resumed_ends_as_an_uninterrupted_run(local_ray, tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     reference = _cfg(tmp_path / "a", "exact_t", **RESUME)
@@ -273,10 +284,8 @@ def test_a_run_killed_mid_generation_and_resumed_ends_as_an_uninterrupted_run(lo
     deadline = time.monotonic() + 240
     try:  # kill it once generation 2 has played its matches and is training
         while time.monotonic() < deadline and proc.poll() is None:
-            if db.exists():
-                with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as conn:
-                    if conn.execute("SELECT COUNT(*) FROM matches WHERE generation = 2").fetchone()[0]:
-                        break
+            if _matches_of_generation(db, 2):
+                break
             time.sleep(0.05)
         assert proc.poll() is None, "the run ended before it could be killed"
     finally:
