@@ -7,8 +7,9 @@ per-drone memory). ``collect`` returns a :class:`Fragment` of plain arrays (no t
 objects), so fragments can travel between processes; weights come in as a state_dict.
 Besides observations, actions and rewards a fragment carries ``extras`` for algorithms
 that need more (the learners' slots, the partners' member indices and the turns the
-partners actually executed), and every finished episode names its partners, so what
-was drawn is what is reported (:attr:`RolloutWorker.drawn`).
+partners actually executed); every finished episode names its partners, and the
+profiles drawn for the episodes started are counted (:attr:`RolloutWorker.drawn`), so
+what was drawn is what is reported.
 """
 
 from __future__ import annotations
@@ -158,7 +159,11 @@ class RolloutWorker:
         self._rows = np.repeat(np.arange(B), k)
         self._keys = np.tile(np.arange(k), B)
         self.memory = self.model.memory(B, k, self.core.obs_dim)
-        self.drawn: Counter[str] = Counter()  # partner profile ("a|b") -> finished episodes
+
+    @property
+    def drawn(self) -> Counter[str]:
+        """Partner profiles ("a|b", ids sorted) drawn for the episodes started so far (the Match's count)."""
+        return self.match.drawn
 
     def inputs(self, obs: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Network inputs (n, k, input_dim) of learner observations (n, k, D) of envs ``rows`` (default all)."""
@@ -197,8 +202,6 @@ class RolloutWorker:
                     "partners": partners,
                 }
             )
-            if partners:
-                self.drawn["|".join(partners)] += 1
 
     @torch.no_grad()
     def collect(self, steps: int) -> Fragment:

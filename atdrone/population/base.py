@@ -41,8 +41,10 @@ class MatchResult:
 class Trained:
     """A learner that finished training, before it is registered.
 
-    ``drawn``: the partner profiles ("a|b") of the episodes it trained on, as counted by
-    the rollout; ``handle`` is the oracle's own (the learner actor).
+    ``drawn``: the partner profiles ("a|b", ids sorted) of the episodes it trained on, as
+    counted by the rollout; ``env_steps``: environment steps its rollouts took;
+    ``samples``: the learner samples (learner drone-steps) its updates used; ``handle`` is
+    the oracle's own (the learner actor).
     """
 
     start_from: str | None
@@ -51,6 +53,8 @@ class Trained:
     drawn: dict[str, int]
     hparams: dict[str, float]
     partners: dict[str, Any]
+    env_steps: int = 0
+    samples: int = 0
     handle: Any = None
 
 
@@ -64,6 +68,8 @@ class TrainingRecord:
     partners: dict[str, Any]
     drawn: dict[str, int]
     history: list[dict[str, float]]
+    env_steps: int = 0
+    samples: int = 0
 
 
 @dataclass
@@ -72,7 +78,9 @@ class GenerationReport:
 
     ``metrics``: scalars the driver logs to MLflow at the generation's step (e.g.
     ``pop/rho/<member>``); ``documents``: JSON artifacts written to the generation's
-    folder (e.g. ``hypergraph.json``).
+    folder (e.g. ``hypergraph.json``); ``budget``: the run's totals so far (``env_steps``
+    and ``learner_samples`` of training, ``eval_env_steps`` of evaluation matches),
+    filled in by the coordinator.
     """
 
     generation: int
@@ -84,6 +92,7 @@ class GenerationReport:
     removed: list[str] = field(default_factory=list)
     metrics: dict[str, float] = field(default_factory=dict)
     documents: dict[str, dict[str, Any]] = field(default_factory=dict)
+    budget: dict[str, int] = field(default_factory=dict)
     wall_s: float = 0.0
 
 
@@ -94,11 +103,16 @@ class Oracle(Protocol):
     num_p: int
     num_ctrl: int
     num_partners: int
+    updates_per_generation: int
     ppo: PPOConfig
     rng: np.random.Generator  # this generation's, derived from (experiment seed, generation)
 
-    def evaluate(self, teams: Sequence[Team]) -> list[MatchResult]:
-        """Play each team (learner id in its num_ctrl slots, then partner ids) and record the matches."""
+    def evaluate(self, teams: Sequence[Team], episodes: int | Sequence[int] | None = None) -> list[MatchResult]:
+        """Play each team (learner id in its num_ctrl slots, then partner ids) and record the matches.
+
+        ``episodes``: per team (or one count for all; default the experiment's eval_episodes),
+        each call with fresh seeds, so repeated calls add independent episodes.
+        """
         ...
 
     def train(
@@ -106,9 +120,11 @@ class Oracle(Protocol):
         start_from: str | None,
         partners: PartnerDistribution | None,
         hparams: Mapping[str, float] | None = None,
+        updates: int | None = None,
     ) -> Trained:
-        """A best response: a learner from ``start_from``'s weights (fresh when None) trained this generation's
-        updates against partners drawn from ``partners`` per environment and episode (self-play when None)."""
+        """A best response: a learner from ``start_from``'s weights (fresh when None) trained ``updates``
+        updates (default updates_per_generation) against partners drawn from ``partners`` per
+        environment and episode (self-play when None)."""
         ...
 
     def register(self, trained: Trained, parents: Sequence[str]) -> str:
@@ -171,4 +187,13 @@ def require_population(cfg: Any, path: str, minimum: int = 2) -> None:
 
 def record(member: str, trained: Trained) -> TrainingRecord:
     """The report's record of a registered learner."""
-    return TrainingRecord(member, trained.start_from, trained.seed, trained.partners, trained.drawn, trained.history)
+    return TrainingRecord(
+        member,
+        trained.start_from,
+        trained.seed,
+        trained.partners,
+        trained.drawn,
+        trained.history,
+        trained.env_steps,
+        trained.samples,
+    )

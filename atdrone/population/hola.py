@@ -1,40 +1,75 @@
-"""HOLA-Drone V2 (SPEC section 10; the paper's appendix "HOLA-Drone (V2) Algorithm") and its "w/o g" ablation.
+"""HOLA-Drone V2 (the paper's appendix "HOLA-Drone (V2) Algorithm"; SPEC section 10) and its "w/o g" ablation.
 
-One generation reads like PSRO's iteration, over the pure functions of
-:mod:`atdrone.population.hypergraph`:
+Generation 0 builds Pi_0; every later generation t reads like PSRO's iteration, over
+the pure functions of :mod:`atdrone.population.hypergraph`:
 
-    missing hyperedges (teams of the last learners not yet played)
-    -> evaluate them -> hyperedge weights (team SUC) -> eta (preference centrality)
-    -> rho over the partners (1 / eta; uniform for hola_no_g)
-    -> best responses trained against partners drawn from rho
-    -> population update (the lowest-eta non-learner leaves when full)
+    N_t (last generation's learners) are in Pi_t
+    -> G'_t: N_t with every M-subset of Pi_t minus N_t       (learner_hyperedges)
+    -> play them until the preferences are resolved or capped (pooled, contested_preferences)
+    -> PG'_t and eta = in-degree in PG'_t / degree in G'_t    (preference_centrality)
+    -> rho over Pi_t minus N_t: normalised 1 / eta, eta with a prior count (smoothed_centrality)
+    -> profiles M ~ rho: teams of M distinct members         (profile_distribution)
+    -> max step: PPO best responses N_{t+1} trained on exactly those draws, per
+       environment and per episode; the rollout counts the profiles it drew
+    -> N_{t+1} joins the population (retirement only with a cap)
 
-Generation 0 bootstraps the population with a self-play learner. The partners the
-learners train with are exactly the draws from rho that the rollout records per
-episode (the report's ``drawn`` counts, beside rho).
+Settings (the ``"hola"`` section of an experiment document):
+
+- ``pi0_seeds`` x ``pi0_levels``: Pi_0 is ``pi0_seeds`` self-play runs, each frozen at
+  ``pi0_levels`` evenly spaced skill levels of its ``updates_per_generation`` updates
+  (as fictitious co-play and the public HOLA-Drone code do), so the first partners
+  span seeds and skill. N_0 is the final snapshot of the first
+  ``learners_per_generation`` seeds.
+- ``learner_start``: ``"last"`` (each learner continues from a learner of N_t, fresh
+  optimiser) or ``"scratch"``.
+- ``weight``: a hyperedge's weight, ``"return"`` (mean team return per episode) or
+  ``"SUC"`` (success rate); both are recorded with standard errors every generation,
+  with the share of preferences each resolves (``hypergraph.json``: ``resolution``).
+- ``min_episodes`` / ``max_episodes`` / ``z``: each hyperedge is played
+  ``min_episodes`` episodes; while a node's preference is contested (its best team
+  does not beat a rival by ``z`` standard errors of the difference) both teams play as
+  many episodes again, up to ``max_episodes``.
+- ``eta_prior``: the prior count a of rho's eta, ``(in + a) / (degree + 2a)``; with a =
+  1 a member nobody prefers, among members of eta 0.5 of the same degree d, is drawn
+  ``(d / 2 + 1)`` times as often as each of them (3x for d = 4), never all the mass.
+- ``max_hyperedges``: play a seeded uniform sample of this many hyperedges of G'_t
+  when it has more (0: all of them).
+- ``population_size`` / ``retire``: off by default (0: the population grows, as in the
+  paper); with a cap, the rule ``"oldest"`` or ``"lowest_eta"`` (the public code's).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
-
 import atdrone.population.hypergraph as hg
 from atdrone.config import ConfigError
-from atdrone.population.base import Algorithm, GenerationReport, Oracle, Team, record, require_population
-from atdrone.teams.partners import weighted
+from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Oracle, Team, TrainingRecord, record
+from atdrone.teams.partners import profiles
+
+WEIGHTS = {"return": "REW", "SUC": "SUC"}  # weight name -> match metric
+STARTS = ("last", "scratch")
 
 
 @dataclass(frozen=True)
 class HolaConfig:
-    """population_size: the population's capacity; learners_per_generation: best responses per generation."""
+    """See the module docstring."""
 
-    population_size: int = 4
+    pi0_seeds: int = 2
+    pi0_levels: int = 2
     learners_per_generation: int = 1
+    learner_start: str = "last"
+    weight: str = "return"
+    eta_prior: float = 1.0
+    min_episodes: int = 32
+    max_episodes: int = 256
+    z: float = 2.0
+    max_hyperedges: int = 0
+    population_size: int = 0
+    retire: str = "oldest"
 
 
 class Hola(Algorithm):
@@ -45,60 +80,194 @@ class Hola(Algorithm):
     def __init__(self, config: HolaConfig, seed: int) -> None:
         super().__init__(config, seed)
         self.learners: list[str] = []  # N_t: the last generation's learners
-        self.eta: dict[str, float] = {}
-        self.matches: list[dict[str, Any]] = []  # {"team": [...], "SUC": ...}: played teams of current members
+        self.eta: dict[str, float] = {}  # raw eta of the last G'_t
+        self.rho: dict[str, float] = {}
+        self.drawn: dict[str, int] = {}  # episodes each member was a partner in, last generation
 
     @classmethod
     def check_config(cls, cfg: Any, path: str) -> None:
-        require_population(cfg, path)
-        if not 1 <= cfg.learners_per_generation <= cfg.population_size:
+        checks = [
+            ("pi0_seeds", cfg.pi0_seeds >= 1, "must be >= 1"),
+            ("pi0_levels", cfg.pi0_levels >= 1, "must be >= 1"),
+            ("learners_per_generation", 1 <= cfg.learners_per_generation <= cfg.pi0_seeds, "must be in 1..pi0_seeds"),
+            ("learner_start", cfg.learner_start in STARTS, f"must be one of {STARTS}"),
+            ("weight", cfg.weight in WEIGHTS, f"must be one of {sorted(WEIGHTS)}"),
+            ("eta_prior", cfg.eta_prior > 0, "must be > 0 (it keeps 1 / eta finite)"),
+            ("min_episodes", cfg.min_episodes >= 2, "must be >= 2 (a standard error needs two episodes)"),
+            ("max_episodes", cfg.max_episodes >= cfg.min_episodes, "must be >= min_episodes"),
+            ("z", cfg.z >= 0, "must be >= 0"),
+            ("max_hyperedges", cfg.max_hyperedges >= 0, "must be >= 0 (0: every hyperedge of G'_t)"),
+            ("retire", cfg.retire in hg.RETIRE_RULES, f"must be one of {hg.RETIRE_RULES}"),
+        ]
+        for key, ok, message in checks:
+            if not ok:
+                raise ConfigError(f"{path}.{key}", f"{message}, got {getattr(cfg, key)!r}")
+        smallest = cfg.pi0_seeds * cfg.pi0_levels + cfg.learners_per_generation
+        if cfg.population_size and cfg.population_size < smallest:
             raise ConfigError(
-                f"{path}.learners_per_generation",
-                f"must be in 1..population_size ({cfg.population_size}), got {cfg.learners_per_generation}",
+                f"{path}.population_size",
+                f"must be 0 (no cap) or hold Pi_0 and a generation's learners ({smallest}), got {cfg.population_size}",
             )
 
+    # ------------------------------------------------------------ generation
     def generation(self, oracle: Oracle) -> GenerationReport:
         if not self.population:
-            return self._bootstrap(oracle)
-        # 1-2. play the hyperedges touching the last learners that have no match yet
-        known = [tuple(m["team"]) for m in self.matches]
-        missing = hg.missing_hyperedges(self.population, self.learners, oracle.num_ctrl, oracle.num_partners, known)
-        played = oracle.evaluate([self._slot_order(team, oracle.num_ctrl) for team in missing])
-        self.matches += [{"team": list(r.team), **r.metrics} for r in played]
-        # 3. hyperedge weights: each team's success rate
-        weights = self._weights()
-        # 4. eta: in-degree in the preference hypergraph / degree in the hypergraph
+            return self._pi0(oracle)
+        cfg = self.config
+        others = [m for m in self.population if m not in self.learners]  # Pi_t minus N_t
+        # min step: G'_t, played until its preferences are resolved (or capped)
+        edges = hg.learner_hyperedges(self.learners, others, oracle.num_ctrl, oracle.num_partners)
+        if cfg.max_hyperedges and len(edges) > cfg.max_hyperedges:
+            keep = sorted(oracle.rng.choice(len(edges), size=cfg.max_hyperedges, replace=False).tolist())
+            edges = [edges[i] for i in keep]
+        played, rounds = self._play(oracle, edges)
+        stats = {w: self._stats(played, metric) for w, metric in WEIGHTS.items()}
+        weights = {team: w for team, (w, _) in stats[cfg.weight].items()}
         self.eta = hg.preference_centrality(weights, nodes=self.population)
-        # 5. rho over the partners: the members nobody prefers are drawn most
-        candidates = list(self.population)
-        rho = hg.uniform_distribution(candidates) if self.uniform else hg.partner_distribution(self.eta, candidates)
-        # 6. best responses against partners drawn from rho, per environment and episode
-        parent = self.learners[-1]
+        smoothed = hg.smoothed_centrality(weights, self.population, cfg.eta_prior)
+        self.rho = hg.uniform_distribution(others) if self.uniform else hg.partner_distribution(smoothed, others)
+        draws = hg.profile_distribution(self.rho, oracle.num_partners)
+        # max step: best responses trained on profiles drawn from rho, per environment and episode
         learners, training = [], []
-        for _ in range(self.config.learners_per_generation):
-            trained = oracle.train(parent, weighted(rho, candidates))
-            member = oracle.register(trained, [parent])
+        for k in range(cfg.learners_per_generation):
+            start = self.learners[k % len(self.learners)] if cfg.learner_start == "last" else None
+            trained = oracle.train(start, profiles(draws))
+            member = oracle.register(trained, [start] if start else [])
             learners.append(member)
             training.append(record(member, trained))
-        # 7. population update
-        eta_all = {m: self.eta.get(m, 0.0) for m in self.population}
-        self.population, removed = hg.update_population(self.population, eta_all, learners, self.config.population_size)
+        # N_{t+1} joins the population
+        self.population, removed = hg.update_population(
+            self.population, learners, cfg.population_size, cfg.retire, smoothed
+        )
         oracle.retire(removed)
         self.learners = learners
-        self.matches = [m for m in self.matches if set(m["team"]) <= set(self.population)]
-        drawn: dict[str, int] = {}
+        return self._report(oracle, learners, training, played, removed, stats, smoothed, draws, rounds)
+
+    def _pi0(self, oracle: Oracle) -> GenerationReport:
+        """Pi_0: pi0_seeds self-play runs, each frozen at pi0_levels skill levels; N_0: the first seeds' finals."""
+        cfg = self.config
+        total = oracle.updates_per_generation
+        if total < cfg.pi0_levels:
+            raise ValueError(f"updates_per_generation ({total}) must be >= hola.pi0_levels ({cfg.pi0_levels})")
+        splits = [total // cfg.pi0_levels + (i < total % cfg.pi0_levels) for i in range(cfg.pi0_levels)]
+        training: list[TrainingRecord] = []
+        finals = []
+        for _ in range(cfg.pi0_seeds):
+            parent: str | None = None
+            for updates in splits:
+                trained = oracle.train(parent, None, updates=updates)
+                member = oracle.register(trained, [parent] if parent else [])
+                training.append(record(member, trained))
+                self.population.append(member)
+                parent = member
+            assert parent is not None
+            finals.append(parent)
+        self.learners = finals[: cfg.learners_per_generation]
+        return GenerationReport(
+            oracle.generation,
+            self.name,
+            list(self.learners),
+            list(self.population),
+            training=training,
+            documents={"pi0.json": {"seeds": cfg.pi0_seeds, "levels": splits, "members": self.population}},
+        )
+
+    def _play(self, oracle: Oracle, edges: Sequence[Team]) -> tuple[dict[Team, list[MatchResult]], int]:
+        """Every hyperedge min_episodes episodes, then the contested ones as many again, up to max_episodes."""
+        cfg = self.config
+        played: dict[Team, list[MatchResult]] = {e: [] for e in edges}
+        episodes = dict.fromkeys(edges, 0)
+        todo, rounds = list(edges), 0
+        while todo:
+            counts = [min(max(cfg.min_episodes, episodes[e]), cfg.max_episodes - episodes[e]) for e in todo]
+            for result in oracle.evaluate(todo, counts):
+                played[result.team].append(result)
+                episodes[result.team] += result.episodes
+            rounds += 1
+            stats = self._stats(played, WEIGHTS[cfg.weight])
+            contested = set().union(*hg.contested_preferences(stats, cfg.z).values())
+            todo = [e for e in edges if hg.team_key(e) in contested and episodes[e] < cfg.max_episodes]
+        return played, rounds
+
+    @staticmethod
+    def _stats(played: Mapping[Team, list[MatchResult]], metric: str) -> dict[Team, tuple[float, float]]:
+        """team_key -> (weight, standard error) from the pooled episodes of every match of the team."""
+        out = {}
+        for team, results in played.items():
+            batches = []
+            for r in results:
+                if metric == "SUC":
+                    p = r.metrics["SUC"] / 100.0
+                    batches.append((r.episodes, p, r.episodes * p * (1 - p) / max(r.episodes - 1, 1)))
+                else:
+                    batches.append((r.episodes, r.metrics["REW"], r.metrics["REW_var"]))
+            mean, se, _ = hg.pooled(batches)
+            out[hg.team_key(team)] = (mean, se)
+        return out
+
+    def _report(
+        self,
+        oracle: Oracle,
+        learners: list[str],
+        training: list[TrainingRecord],
+        played: dict[Team, list[MatchResult]],
+        removed: list[str],
+        stats: dict[str, dict[Team, tuple[float, float]]],
+        smoothed: dict[str, float],
+        draws: dict[Team, float],
+        rounds: int,
+    ) -> GenerationReport:
+        cfg = self.config
+        drawn_profiles: dict[str, int] = {}
         for t in training:
             for profile, n in t.drawn.items():
-                drawn[profile] = drawn.get(profile, 0) + n
-        metrics = {"pop/rho_entropy": hg.distribution_entropy(rho), "eval/matches": float(len(played))}
+                drawn_profiles[profile] = drawn_profiles.get(profile, 0) + n
+        self.drawn = {}
+        for profile, n in drawn_profiles.items():
+            for m in profile.split("|"):
+                self.drawn[m] = self.drawn.get(m, 0) + n
+        nodes = len({m for e in played for m in e})
+        resolution = {
+            w: {"contested_nodes": len(hg.contested_preferences(s, cfg.z)), "nodes": nodes} for w, s in stats.items()
+        }
+        matches = [r for results in played.values() for r in results]
+        episodes = sum(r.episodes for r in matches)
+        weights = {team: w for team, (w, _) in stats[cfg.weight].items()}
+        metrics = {
+            "pop/rho_entropy": hg.distribution_entropy(self.rho),
+            "eval/hyperedges": float(len(played)),
+            "eval/episodes": float(episodes),
+            "eval/rounds": float(rounds),
+        }
+        metrics.update(
+            {f"eval/contested_share/{w}": r["contested_nodes"] / max(r["nodes"], 1) for w, r in resolution.items()}
+        )
         metrics.update({f"pop/eta/{m}": v for m, v in self.eta.items()})
-        metrics.update({f"pop/rho/{m}": v for m, v in rho.items()})
+        metrics.update({f"pop/rho/{m}": v for m, v in self.rho.items()})
+        metrics.update({f"pop/drawn/{m}": float(n) for m, n in self.drawn.items()})
         graph = {
+            "learners": sorted({e[0] for e in played}),
+            "weight": cfg.weight,
+            "hyperedges": [
+                {
+                    "team": list(team),
+                    "episodes": sum(r.episodes for r in results),
+                    **{f"{w}": stats[w][hg.team_key(team)][0] for w in WEIGHTS},
+                    **{f"{w}_se": stats[w][hg.team_key(team)][1] for w in WEIGHTS},
+                }
+                for team, results in played.items()
+            ],
             "weights": {"|".join(k): v for k, v in weights.items()},
             "preference": {n: list(e) for n, e in hg.preference_hypergraph(weights).items()},
             "eta": dict(self.eta),
-            "rho": rho,
-            "drawn_profiles": drawn,
+            "eta_smoothed": smoothed,
+            "rho": dict(self.rho),
+            "profiles": {"|".join(sorted(p)): v for p, v in draws.items()},
+            "member_shares": hg.member_shares(draws),
+            "drawn_profiles": dict(sorted(drawn_profiles.items())),
+            "drawn_members": dict(sorted(self.drawn.items())),
+            "resolution": resolution,
+            "rounds": rounds,
             "removed": removed,
         }
         return GenerationReport(
@@ -107,44 +276,22 @@ class Hola(Algorithm):
             learners,
             list(self.population),
             training=training,
-            matches=played,
+            matches=matches,
             removed=removed,
             metrics=metrics,
             documents={"hypergraph.json": graph},
         )
 
-    def _bootstrap(self, oracle: Oracle) -> GenerationReport:
-        """Pi_0: one self-play learner."""
-        trained = oracle.train(None, partners=None)
-        member = oracle.register(trained, [])
-        self.population, self.learners = [member], [member]
-        return GenerationReport(oracle.generation, self.name, [member], [member], training=[record(member, trained)])
-
-    def _weights(self) -> dict[Team, float]:
-        table = pd.DataFrame(self.matches)  # pruned to the population's teams at every population update
-        if not len(table):
-            return {}
-        table["score"] = table["SUC"] / 100.0
-        return hg.hyperedge_weights(table)
-
-    def _slot_order(self, key: Team, num_ctrl: int) -> Team:
-        """A team_key as slots: the learner (filling num_ctrl slots) first, then its partners."""
-        for m in self.learners:
-            if key.count(m) >= num_ctrl:
-                rest = list(key)
-                for _ in range(num_ctrl):
-                    rest.remove(m)
-                return (m,) * num_ctrl + tuple(rest)
-        raise ValueError(f"team {key} has no learner filling {num_ctrl} slots")
-
+    # ----------------------------------------------------------------- state
     def state(self) -> dict[str, Any]:
-        return {**super().state(), "learners": self.learners, "eta": self.eta, "matches": self.matches}
+        return {**super().state(), "learners": self.learners, "eta": self.eta, "rho": self.rho, "drawn": self.drawn}
 
     def load_state(self, state: Mapping[str, Any]) -> None:
         super().load_state(state)
         self.learners = list(state.get("learners", []))
         self.eta = dict(state.get("eta", {}))
-        self.matches = [dict(m) for m in state.get("matches", [])]
+        self.rho = dict(state.get("rho", {}))
+        self.drawn = dict(state.get("drawn", {}))
 
     @classmethod
     def figures(cls, report: GenerationReport, out_dir: Path) -> list[Path]:
@@ -159,7 +306,7 @@ class Hola(Algorithm):
 
 
 class HolaNoG(Hola):
-    """The ablation: partners drawn uniformly from the population instead of from rho."""
+    """The ablation: profiles drawn uniformly from Pi minus N_t instead of from rho."""
 
     name = "hola_no_g"
     uniform = True

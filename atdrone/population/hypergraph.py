@@ -1,29 +1,38 @@
-"""HOLA-Drone V2 (SPEC section 10): the preference hypergraph over a population of policies.
+"""HOLA-Drone V2 (SPEC section 10; the paper's appendix "HOLA-Drone (V2) Algorithm"): the maths.
 
-Pure functions over a table of evaluation matches, so the Ray coordinator holds no
-algorithm of its own and every step can be tested against a plain reference.
+Pure functions, so the algorithm module (:mod:`atdrone.population.hola`) reads top to
+bottom and every step can be checked against a worked example and a plain reference.
 
 Vocabulary:
 
-- A *member* is a policy of the population, named by a string id.
+- A *member* is a policy of the population Pi, named by a string id.
 - A *team* (a hyperedge) is the multiset of member ids filling the pursuer slots, e.g.
-  ``("L", "L", "p1", "p3")`` when learner ``L`` fills 2 learner slots next to partners
-  ``p1`` and ``p3``. Its canonical form is :func:`team_key`, the sorted tuple. For degrees
-  the hyperedge's node set is its set of *distinct* members and ``|e|`` is their number,
-  so a team is linked to each of its distinct co-members once, however many slots they fill.
-- A team's *weight* is its mean outcome over its evaluation matches.
+  ``("L", "L", "p1", "p3")`` when learner ``L`` fills its N = 2 learner slots next to
+  partners ``p1`` and ``p3``. The N learner drones share one policy (IPPO parameter
+  sharing, as in self-play and the public HOLA-Drone code), so they are one node: a
+  hyperedge's node set is its set of *distinct* members and ``|e|`` their number. The
+  canonical form of a team is :func:`team_key`, the sorted tuple.
+- A team's *weight* is its mean outcome over its evaluation episodes (with a standard
+  error, see :func:`unresolved_hyperedges`).
 
-One generation of the algorithm, as the coordinator calls it::
+One generation t, as :class:`atdrone.population.hola.Hola` runs it::
 
-    population, removed = update_population(population, eta, learners, capacity)
-    to_play = missing_hyperedges(population, learners, num_ctrl, num_partners, known)
-    ...                                   # evaluate to_play, append to the match table
-    weights = hyperedge_weights(matches)
-    eta = preference_centrality(weights, nodes=population)
-    rho = partner_distribution(eta, [m for m in population if m not in learners])
-    profiles = sample_profiles(rho, num_profiles, num_partners, rng)   # max step: PPO
+    edges = learner_hyperedges(N_t, Pi - N_t, num_ctrl, M)    # G'_t
+    ...                                                       # evaluate until contested_preferences is empty
+    eta = preference_centrality(weights, nodes)               # in PG'_t / degree in G'_t
+    rho = partner_distribution(smoothed_centrality(weights, nodes, prior), Pi - N_t)
+    profiles = profile_distribution(rho, M)                   # teams of M distinct members
+    ...                                                       # max step: PPO on those draws
+    population, removed = update_population(...)              # only with a cap
 
-The "w/o g" ablation replaces ``partner_distribution`` by :func:`uniform_distribution`.
+The "w/o g" ablation replaces rho by :func:`uniform_distribution`.
+
+*Degree.* The appendix's "degree of node i in G" is read as the sum over the hyperedges
+e containing i of ``|e| - 1`` (the number of (hyperedge, co-member) incidences), not the
+number of hyperedges containing i. Reason: every node counted in i's in-degree is a
+co-member of i in some hyperedge, so in-degree <= sum of ``|e| - 1`` and eta stays in
+[0, 1]. With the count reading a node in one hyperedge of four members that all three
+others prefer has eta = 3 / 1.
 """
 
 from __future__ import annotations
@@ -132,6 +141,26 @@ def preference_centrality(weights: dict[Team, float], nodes: Iterable[str] | Non
     }
 
 
+def smoothed_centrality(weights: dict[Team, float], nodes: Iterable[str], prior: float) -> dict[str, float]:
+    """eta with a prior count: ``(in-degree + prior) / (degree + 2 prior)`` (Laplace's rule for prior = 1).
+
+    The min step needs 1 / eta, which the raw eta of a member nobody prefers (in-degree
+    0) makes infinite. The prior counts ``prior`` virtual preferences out of ``2 prior``
+    virtual opportunities, so eta is in (0, 1) and shrinks toward 1/2 where a member has
+    few hyperedges. In G'_t every non-learner has the same degree d (when every
+    hyperedge is played), so rho is proportional to ``1 / (in-degree + prior)``: a member
+    nobody prefers is drawn ``(d eta + prior) / prior`` times as often as one of eta
+    ``eta``, e.g. 3x for d = 4, eta = 0.5, prior = 1 (one such member among three at 0.5
+    gets rho = 3 / 6 = 0.5). ``prior`` must be > 0.
+    """
+    if not prior > 0:
+        raise ValueError(f"prior must be > 0, got {prior}")
+    degree = hypergraph_degrees(weights)
+    in_degree = preference_in_degrees(preference_hypergraph(weights))
+    everyone = set(degree) | set(nodes)
+    return {n: (in_degree.get(n, 0) + prior) / (degree.get(n, 0) + 2 * prior) for n in sorted(everyone)}
+
+
 def _unique(candidates: Iterable[str]) -> list[str]:
     ids = list(dict.fromkeys(candidates))
     if not ids:
@@ -139,30 +168,29 @@ def _unique(candidates: Iterable[str]) -> list[str]:
     return ids
 
 
-def partner_distribution(eta: dict[str, float], candidates: Iterable[str], eps: float = 1e-3) -> dict[str, float]:
-    """The min step: rho over ``candidates`` proportional to ``1 / (eta + eps)``, normalised.
+def partner_distribution(eta: dict[str, float], candidates: Iterable[str]) -> dict[str, float]:
+    """The min step: rho over ``candidates`` (Pi minus N_t), the normalised reciprocal of eta.
 
-    The learners train against partners drawn from rho, so the members nobody likes to
-    play with (low eta) are drawn most often: the worst-case partners for generalisation.
-    ``eps`` keeps a member of eta 0 finite; it must keep every ``eta + eps`` positive.
-    Every candidate must be in ``eta`` (compute eta with ``nodes=population``): a missing id
-    is an error rather than a silent eta 0, which would make it the most drawn partner.
-    Duplicate candidates count once; keys keep the candidates' order.
+    The members nobody likes to play with (low eta) get the most mass: the worst-case
+    partners. eta must be positive for every candidate (use :func:`smoothed_centrality`);
+    a candidate missing from ``eta`` is an error rather than a silent eta. Duplicate
+    candidates count once; keys keep the candidates' order.
     """
     ids = _unique(candidates)
     missing = [c for c in ids if c not in eta]
     if missing:
         raise KeyError(f"no eta for candidate(s) {missing}")
-    shifted = np.array([eta[c] + eps for c in ids], dtype=np.float64)
-    if not np.all(shifted > 0):
-        raise ValueError(f"eta + eps must be positive, got {dict(zip(ids, shifted.tolist(), strict=True))}")
-    inverse = 1.0 / shifted
-    rho = inverse / inverse.sum()
-    return dict(zip(ids, rho.tolist(), strict=True))
+    values = np.array([eta[c] for c in ids], dtype=np.float64)
+    if not np.all(values > 0):
+        raise ValueError(
+            f"eta must be positive to take its reciprocal, got {dict(zip(ids, values.tolist(), strict=True))}"
+        )
+    inverse = 1.0 / values
+    return dict(zip(ids, (inverse / inverse.sum()).tolist(), strict=True))
 
 
 def uniform_distribution(candidates: Iterable[str]) -> dict[str, float]:
-    """The "w/o g" ablation: every candidate drawn equally often (duplicates count once)."""
+    """The "w/o g" ablation: every candidate equally likely (duplicates count once)."""
     ids = _unique(candidates)
     return dict.fromkeys(ids, 1.0 / len(ids))
 
@@ -172,82 +200,137 @@ def distribution_entropy(rho: dict[str, float]) -> float:
     return -math.fsum(p * math.log(p) for p in rho.values() if p > 0)
 
 
-def sample_profiles(
-    rho: dict[str, float], num_profiles: int, num_partners: int, rng: np.random.Generator
-) -> list[tuple[str, ...]]:
-    """``num_profiles`` partner profiles, each ``num_partners`` ids drawn i.i.d. from rho.
+def _subsets(ids: Sequence[str], size: int) -> Iterable[tuple[str, ...]]:
+    """M-subsets of distinct members; multisets when there are fewer members than slots."""
+    if len(ids) >= size:
+        return itertools.combinations(ids, size)
+    return itertools.combinations_with_replacement(ids, size)
 
-    Draws are with replacement, so a profile may hold one member in several slots, as the
-    weights of rho ask. A profile lists the partner slots in draw order (not a team_key).
+
+def profile_distribution(rho: dict[str, float], num_partners: int) -> dict[Team, float]:
+    """``M ~ rho`` as teams: P(profile) proportional to the product of rho over its members.
+
+    A profile is ``num_partners`` *distinct* members of rho's support (every
+    ``num_partners``-subset; multisets when the pool has fewer members than slots), so an
+    episode never puts one partner policy in two slots while others are available. The
+    product form keeps rho's order (a member with more rho is in more profiles) and makes
+    the drawn profiles testable against exact probabilities. Keys: profiles in the
+    order of rho's keys; values sum to 1.
     """
-    if num_profiles < 0 or num_partners < 0:
-        raise ValueError(f"num_profiles and num_partners must be >= 0, got {num_profiles}, {num_partners}")
-    ids = list(rho)
-    p = np.array([rho[i] for i in ids], dtype=np.float64)
-    if not ids or np.any(p < 0) or not p.sum() > 0:
-        raise ValueError(f"rho must be a non-empty distribution with non-negative weights, got {rho}")
-    draws = rng.choice(len(ids), size=(num_profiles, num_partners), p=p / p.sum())
-    return [tuple(ids[j] for j in row) for row in draws]
+    if num_partners < 1:
+        raise ValueError(f"num_partners must be >= 1, got {num_partners}")
+    ids = [m for m, p in rho.items() if p > 0]
+    if not ids or any(p < 0 for p in rho.values()):
+        raise ValueError(f"rho must be a distribution with some positive mass, got {rho}")
+    weights = {profile: math.prod(rho[m] for m in profile) for profile in _subsets(ids, num_partners)}
+    total = math.fsum(weights.values())
+    return {profile: w / total for profile, w in weights.items()}
 
 
-def missing_hyperedges(
-    population: Sequence[str],
-    learners: Sequence[str],
-    num_ctrl: int,
-    num_partners: int,
-    known: Iterable[tuple],
-) -> list[Team]:
-    """The teams touching the learners that have no evaluation yet, as team_keys.
+def member_shares(profiles: dict[Team, float]) -> dict[str, float]:
+    """The share of episodes each member plays in under a profile distribution (sums to M)."""
+    share: dict[str, float] = {}
+    for profile, p in profiles.items():
+        for m in profile:
+            share[m] = share.get(m, 0.0) + p
+    return share
 
-    Each learner fills its ``num_ctrl`` slots and the ``num_partners`` partner slots take
-    every multiset of population members other than that learner (with repetition, as
-    :func:`sample_profiles` draws them; other learners of the population are partners too).
-    Teams already in ``known`` (any slot order) are left out. With n members besides the
-    learner that is ``C(n + num_partners - 1, num_partners)`` teams per learner, e.g. 36 for
-    n = 8 and 2 partners, 165 for n = 9 and 3: the generation's evaluation budget. Teams in
-    which a learner fills other than ``num_ctrl`` slots are never asked for. Order: by
-    learner, then lexicographic over the population's order; no duplicates.
+
+def learner_hyperedges(learners: Sequence[str], others: Sequence[str], num_ctrl: int, num_partners: int) -> list[Team]:
+    """The hyperedges of G'_t in slot order: each learner in its ``num_ctrl`` slots with every M-subset of ``others``.
+
+    ``others`` is Pi minus N_t; M = ``num_partners`` distinct members per team (multisets
+    when there are fewer than M others, as :func:`profile_distribution` draws them). With
+    n others that is C(n, M) teams per learner, e.g. 28 for n = 8 and M = 2.
     """
-    if num_ctrl < 1 or num_partners < 0:
-        raise ValueError(f"need num_ctrl >= 1 and num_partners >= 0, got {num_ctrl}, {num_partners}")
-    seen = {team_key(team) for team in known}
-    members = list(dict.fromkeys(population))
-    missing: list[Team] = []
-    for learner in dict.fromkeys(learners):
-        pool = [m for m in members if m != learner]
-        for partners in itertools.combinations_with_replacement(pool, num_partners):
-            team = team_key((learner,) * num_ctrl + partners)
-            if team not in seen:
-                seen.add(team)
-                missing.append(team)
-    return missing
+    if num_ctrl < 1 or num_partners < 1:
+        raise ValueError(f"need num_ctrl >= 1 and num_partners >= 1, got {num_ctrl}, {num_partners}")
+    pool = [m for m in dict.fromkeys(others) if m not in set(learners)]
+    if not pool:
+        raise ValueError("Pi minus N_t is empty: no partners to build hyperedges with")
+    return [
+        (learner,) * num_ctrl + profile
+        for learner in dict.fromkeys(learners)
+        for profile in _subsets(pool, num_partners)
+    ]
+
+
+def pooled(batches: Iterable[tuple[int, float, float]]) -> tuple[float, float, int]:
+    """(mean, standard error, n) of the episodes of several batches, each (n, mean, sample variance).
+
+    The pooled sample variance is exact (within-batch plus between-batch sums of squares),
+    so a team's weight and its error do not depend on how its episodes were split. For a
+    success rate the batch variance is the Bernoulli sample variance ``n p (1 - p) / (n - 1)``.
+    """
+    rows = [(int(n), float(m), float(v)) for n, m, v in batches]
+    total = sum(n for n, _, _ in rows)
+    if total < 2:
+        raise ValueError(f"need at least 2 episodes for a standard error, got {total}")
+    mean = math.fsum(n * m for n, m, _ in rows) / total
+    squares = math.fsum((n - 1) * v + n * (m - mean) ** 2 for n, m, v in rows)
+    return mean, math.sqrt(squares / (total - 1) / total), total
+
+
+def contested_preferences(stats: dict[Team, tuple[float, float]], z: float) -> dict[str, set[Team]]:
+    """The nodes whose preferred hyperedge is not resolved, with the hyperedges that contest it.
+
+    ``stats``: team_key -> (weight, standard error). A node's preferred hyperedge (the
+    highest weight among the teams with >= 2 distinct members containing it, as
+    :func:`preference_hypergraph`) is *resolved* when it beats each other such team e of
+    the node by more than ``z * sqrt(se_best^2 + se_e^2)``. For every unresolved node the
+    value holds the preferred hyperedge and its contenders: the matches worth more
+    episodes. Equal weights with zero error (e.g. SUC 0 against 0) are unresolved.
+    """
+    by_node: dict[str, list[Team]] = {}
+    for team in stats:
+        members = _distinct(team)
+        if len(members) < 2:
+            continue
+        for node in members:
+            by_node.setdefault(node, []).append(team)
+    out: dict[str, set[Team]] = {}
+    for node, teams in sorted(by_node.items()):
+        best = min(teams, key=lambda t: (-stats[t][0], t))
+        w_best, se_best = stats[best]
+        close = [t for t in teams if t != best and w_best - stats[t][0] <= z * math.hypot(se_best, stats[t][1])]
+        if close:
+            out[node] = {best, *close}
+    return out
+
+
+RETIRE_RULES = ("oldest", "lowest_eta")
 
 
 def update_population(
-    population: Sequence[str], eta: dict[str, float], learners: Sequence[str], capacity: int
+    population: Sequence[str],
+    learners: Sequence[str],
+    capacity: int,
+    rule: str = "oldest",
+    eta: dict[str, float] | None = None,
 ) -> tuple[list[str], list[str]]:
-    """Add the learners; while over ``capacity``, remove the lowest-eta member that is not a learner.
+    """Add the learners; with a ``capacity`` (0: none, the paper's growing population), retire by ``rule``.
 
-    Ties go to the oldest member, the earliest in ``population``. The learners are always
-    kept (so ``capacity`` must hold them all); members keep their order and learners not yet
-    in the population are appended. Every member that may be removed must be in ``eta``: a missing id
-    is an error rather than a silent eta 0. Returns (new population, removed members in
-    order of removal).
+    Rules: ``"oldest"`` removes the earliest non-learners of ``population``;
+    ``"lowest_eta"`` (the public HOLA-Drone code) the lowest-eta ones, ties to the oldest,
+    and every removable member must be in ``eta``. Learners are always kept. Returns
+    (new population, removed members in order of removal).
     """
+    if rule not in RETIRE_RULES:
+        raise ValueError(f"rule must be one of {RETIRE_RULES}, got {rule!r}")
     new_learners = list(dict.fromkeys(learners))
-    if len(new_learners) > capacity:
+    if capacity and len(new_learners) > capacity:
         raise ValueError(f"capacity {capacity} cannot hold the {len(new_learners)} learners")
     members = list(dict.fromkeys(population))
     members += [m for m in new_learners if m not in members]
-    protected = set(new_learners)
-    removed: list[str] = []
-    excess = len(members) - capacity
-    if excess > 0:
-        others = [m for m in members if m not in protected]
+    excess = len(members) - capacity if capacity else 0
+    if excess <= 0:
+        return members, []
+    others = [m for m in members if m not in set(new_learners)]
+    if rule == "lowest_eta":
+        eta = eta or {}
         missing = [m for m in others if m not in eta]
         if missing:
             raise KeyError(f"no eta for member(s) {missing}")
-        order = sorted(range(len(others)), key=lambda i: (eta[others[i]], i))
-        removed = [others[i] for i in order[:excess]]
-        members = [m for m in members if m not in set(removed)]
-    return members, removed
+        others = [others[i] for i in sorted(range(len(others)), key=lambda i: (eta[others[i]], i))]
+    removed = others[:excess]
+    return [m for m in members if m not in set(removed)], removed

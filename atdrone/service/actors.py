@@ -107,14 +107,20 @@ class RolloutWorkerActor:
         return dict(self.worker.drawn) if self.worker is not None else {}
 
     def evaluate(self, learner: MemberSpec, profile: Sequence[MemberSpec], episodes: int, seed: int) -> dict[str, Any]:
-        """SUC/COL/AST/REW of ``learner`` in the learner slots with exactly ``profile`` as partners."""
+        """SUC/COL/AST/REW of ``learner`` in the learner slots with exactly ``profile`` as partners.
+
+        Also ``REW_var`` (the per-episode returns' sample variance, for standard errors)
+        and ``steps`` (environment steps of the episodes).
+        """
         policy = self.policies.get(learner)
         partners = [self.policies.get(s) for s in profile]
         fixed = np.arange(len(partners))
         records = run_episodes(
             policy, self.task, partners, episodes, seed=seed, sampler=lambda rng, n: np.tile(fixed, (n, 1))
         )
-        return metrics(records)
+        returns = records["return"].to_numpy(np.float64)
+        var = float(returns.var(ddof=1)) if len(returns) > 1 else 0.0
+        return {**metrics(records), "REW_var": var, "steps": int(records["length"].sum())}
 
     def evaluate_zoo(self, learner: MemberSpec, zoo: Sequence[MemberSpec], episodes: int, seed: int) -> dict:
         """SUC/COL/AST/REW of ``learner`` with partners drawn uniformly from ``zoo``."""

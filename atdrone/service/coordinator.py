@@ -73,10 +73,14 @@ class Coordinator:
         self.num_p = self.task.players.num_p
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl
+        self.updates_per_generation = cfg.updates_per_generation
         self.workers = [RolloutWorkerActor.remote(self.task) for _ in range(cfg.num_workers)]
         self.algorithm = algorithm(algorithm.parse_config(cfg.section, cfg.algorithm), cfg.seed)
         state = dict(state or {})
         self.generation: int = state.get("generation", 0)
+        # the run's totals so far: training env steps and learner samples, evaluation env steps
+        self.budget: dict[str, int] = {"env_steps": 0, "learner_samples": 0, "eval_env_steps": 0}
+        self.budget.update(state.get("budget", {}))
         if "algorithm" in state:
             self.algorithm.load_state(state["algorithm"])
         self.zoo_specs: dict[str, MemberSpec] = {}
@@ -92,7 +96,12 @@ class Coordinator:
     # ---------------------------------------------------------------- state
     def state(self) -> dict[str, Any]:
         """Everything needed to continue after the last completed generation (JSON)."""
-        return {"generation": self.generation, "seed": self.cfg.seed, "algorithm": self.algorithm.state()}
+        return {
+            "generation": self.generation,
+            "seed": self.cfg.seed,
+            "budget": dict(self.budget),
+            "algorithm": self.algorithm.state(),
+        }
 
     def population(self) -> list[str]:
         return list(self.algorithm.population)
@@ -110,6 +119,7 @@ class Coordinator:
         self._begin(self.generation)
         ray.get(self.registry.start_generation.remote(self.run, self.generation, {"algorithm": self.cfg.algorithm}))
         report = self.algorithm.generation(self)
+        report.budget = dict(self.budget)
         report.wall_s = time.perf_counter() - t0
         ray.get(
             self.registry.finish_generation.remote(
@@ -143,7 +153,11 @@ class Coordinator:
         start_from: str | None,
         partners: PartnerDistribution | None,
         hparams: Mapping[str, float] | None = None,
+        updates: int | None = None,
     ) -> Trained:
+        updates = self.cfg.updates_per_generation if updates is None else updates
+        if updates < 1:
+            raise ValueError(f"updates must be >= 1, got {updates}")
         index, self.trained = self.trained, self.trained + 1
         seed = derive_seed(self.cfg.seed, self.generation, LEARNER_STREAM, index)
         spec = LearnerSpec(
@@ -151,7 +165,7 @@ class Coordinator:
             num_e=self.task.players.num_e,
             num_p=self.num_p,
             seed=seed,
-            total_updates=self.cfg.updates_per_generation,
+            total_updates=updates,
             architecture=self.architecture,
         )
         learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(spec, self.cfg.learner_threads)
@@ -167,7 +181,11 @@ class Coordinator:
             ray.put(RolloutJob(derive_seed(seed, i), self.ppo, envs, num_ctrl, self.architecture, specs, partners))
             for i in range(len(self.workers))
         ]
-        history = run_updates(learner, self.workers, jobs, self.cfg.updates_per_generation, self.ppo.rollout_steps)
+        history = run_updates(learner, self.workers, jobs, updates, self.ppo.rollout_steps)
+        env_steps = updates * envs * len(self.workers) * self.ppo.rollout_steps
+        samples = int(sum(h["train/samples"] for h in history))
+        self.budget["env_steps"] += env_steps
+        self.budget["learner_samples"] += samples
         drawn: Counter[str] = Counter()
         for counts in ray.get([w.drawn.remote() for w in self.workers]):
             drawn.update(counts)
@@ -178,6 +196,8 @@ class Coordinator:
             drawn=dict(sorted(drawn.items())),
             hparams=ray.get(learner.hparams.remote()),
             partners=describe(partners),
+            env_steps=env_steps,
+            samples=samples,
             handle=learner,
         )
 
@@ -194,7 +214,7 @@ class Coordinator:
             "algorithm": self.cfg.algorithm,
             "config": self.cfg.to_dict(),
             "seed": trained.seed,
-            "step": self.cfg.updates_per_generation * self.ppo.num_envs * self.ppo.rollout_steps,
+            "step": trained.env_steps,
             "generation": self.generation,
             "parents": list(parents),
             "partners": trained.partners,
@@ -220,27 +240,33 @@ class Coordinator:
     def retire(self, members: Sequence[str]) -> None:
         ray.get([self.registry.update_member.remote(m, status="retired") for m in members])
 
-    def evaluate(self, teams: Sequence[Team]) -> list[MatchResult]:
-        """Play each team (learner id repeated num_ctrl times + partner ids) on the workers; record the matches."""
+    def evaluate(self, teams: Sequence[Team], episodes: int | Sequence[int] | None = None) -> list[MatchResult]:
+        """Play each team (learner id repeated num_ctrl times + partner ids) on the workers; record the matches.
+
+        ``episodes`` per team (one count for all; default eval_episodes). Every call draws
+        fresh seeds from the generation's evaluation stream.
+        """
+        if episodes is None or isinstance(episodes, int):
+            counts = [self.cfg.eval_episodes if episodes is None else int(episodes)] * len(teams)
+        else:
+            counts = [int(n) for n in episodes]
+        if len(counts) != len(teams) or any(n < 1 for n in counts):
+            raise ValueError(f"need a positive episode count per team, got {counts} for {len(teams)} teams")
         first, self.evaluated = self.evaluated, self.evaluated + len(teams)
         seeds = [derive_seed(self.cfg.seed, self.generation, EVAL_STREAM, first + i) for i in range(len(teams))]
         calls = [
             self.workers[i % len(self.workers)].evaluate.remote(
-                self.member_spec(team[0]),
-                [self.member_spec(p) for p in team[self.num_ctrl :]],
-                self.cfg.eval_episodes,
-                seed,
+                self.member_spec(team[0]), [self.member_spec(p) for p in team[self.num_ctrl :]], n, seed
             )
-            for i, (team, seed) in enumerate(zip(teams, seeds, strict=True))
+            for i, (team, n, seed) in enumerate(zip(teams, counts, seeds, strict=True))
         ]
         results = []
-        for team, seed, result in zip(teams, seeds, ray.get(calls), strict=True):
+        for team, n, seed, result in zip(teams, counts, seeds, ray.get(calls), strict=True):
             ray.get(
-                self.registry.add_match.remote(
-                    list(team), self.task.name, self.run, self.generation, [seed], self.cfg.eval_episodes, result
-                )
+                self.registry.add_match.remote(list(team), self.task.name, self.run, self.generation, [seed], n, result)
             )
-            results.append(MatchResult(tuple(team), dict(result), self.cfg.eval_episodes, seed))
+            self.budget["eval_env_steps"] += int(result["steps"])
+            results.append(MatchResult(tuple(team), dict(result), n, seed))
         return results
 
     # ------------------------------------------------------------ final eval

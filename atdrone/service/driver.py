@@ -130,7 +130,8 @@ def _generations(
                 learners = ", ".join(report.learners)
                 print(
                     f"[{cfg.name}] generation {g} done in {time.perf_counter() - t0:.0f}s: learners {learners}; "
-                    f"population {len(report.population)}",
+                    f"population {len(report.population)}; env steps {report.budget.get('env_steps', 0):,}, "
+                    f"learner samples {report.budget.get('learner_samples', 0):,}",
                     flush=True,
                 )
             if stop_after is not None and g + 1 >= stop_after:
@@ -169,6 +170,7 @@ def _log_generation(
     gen_dir = run_dir / "generations" / f"{g:03d}"
     with tracker.run(cfg.name, f"generation-{g}", nested=True):
         metrics = {"pop/size": len(report.population), "perf/generation_s": report.wall_s, **report.metrics}
+        metrics.update({f"budget/{k}": float(v) for k, v in report.budget.items()})
         if report.matches:
             metrics["eval/matches"] = len(report.matches)
             metrics["eval/SUC"] = float(np.mean([m.metrics["SUC"] for m in report.matches]))
@@ -211,10 +213,12 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
         ray.get(coordinator.evaluate_population.remote(cfg.final_zoo, cfg.final_episodes)) if cfg.final_zoo else {}
     )
     state = ray.get(coordinator.state.remote())["algorithm"]
-    eta = state.get("eta", {})
+    eta, rho, drawn = state.get("eta", {}), state.get("rho", {}), state.get("drawn", {})
     rows = []
     for m in state["population"]:
-        row = {"member": m, "eta": eta.get(m, float("nan"))}
+        row: dict[str, Any] = {"member": m, "eta": eta.get(m, float("nan"))}
+        if rho:  # the last generation's partner distribution and the partner slots drawn from it
+            row.update({"rho": rho.get(m, float("nan")), "drawn": int(drawn.get(m, 0))})
         for k, v in results.get(m, {}).items():
             row[f"{cfg.final_zoo}_{k}"] = v
         rows.append(row)
@@ -228,7 +232,7 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
     else:
         best = state["population"][-1]
     _log_best(tracker, best, run_dir, cfg)
-    return {"population": table, "best": best}
+    return {"population": table, "best": best, "budget": ray.get(coordinator.state.remote())["budget"]}
 
 
 def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> None:
@@ -260,6 +264,7 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
             f"\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):",
             table,
             f"best member: {summary['best']}; run directory: {summary['run_dir']}",
+            "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
             f"registry: atdrone registry --db {summary['run_dir']}/registry.db list",
             f"MLflow: experiment {cfg.experiment or cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
             f"browse with: mlflow ui --backend-store-uri {tracking_uri}",

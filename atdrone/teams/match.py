@@ -11,6 +11,7 @@ exposes the learners' slots only: observations (B, num_ctrl, obs_dim) and action
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -54,6 +55,7 @@ class Match:
         self.members = np.zeros((B, self.num_unctrl), dtype=np.intp)
         self._rows = np.arange(B)[:, None]
         self._obs: np.ndarray | None = None
+        self.drawn: Counter[str] = Counter()  # partner profile ("a|b", ids sorted) -> episodes started with it
 
     def _uniform(self, rng: np.random.Generator, n: int) -> np.ndarray:
         return rng.integers(len(self.partners), size=(n, self.num_unctrl))
@@ -73,7 +75,9 @@ class Match:
         if self.shuffle_slots:
             self.slots[envs] = np.argsort(self.rng.random((n, P)), axis=1)
         if self.num_unctrl:
-            self.members[envs] = self.sampler(self.rng, n)
+            drawn = self.sampler(self.rng, n)
+            self.members[envs] = drawn
+            self.drawn.update("|".join(sorted(row)) for row in self._names[drawn])
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset every environment and draw new teams; learner observations (B, num_ctrl, D)."""

@@ -8,7 +8,7 @@ members); ``draw`` returns indices into it. Any class with these two members plu
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -58,11 +58,53 @@ class Weighted:
         return rng.choice(len(self.members), size=(n, slots), p=p / p.sum())
 
 
+@dataclass(frozen=True)
+class Profiles:
+    """Whole partner teams: each episode draws one profile with probability ``probs``.
+
+    ``profiles[k]`` holds indices into ``members``, one per partner slot (the Match
+    shuffles every episode's slots, so no member is tied to a slot).
+    """
+
+    members: tuple[str, ...]
+    profiles: tuple[tuple[int, ...], ...]
+    probs: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.probs, dtype=np.float64)
+        if len(p) != len(self.profiles) or not len(p) or np.any(p < 0) or not p.sum() > 0:
+            raise ValueError(f"probs must be {len(self.profiles)} non-negative weights, not all 0; got {self.probs}")
+        sizes = {len(t) for t in self.profiles}
+        if len(sizes) != 1 or any(not 0 <= i < len(self.members) for t in self.profiles for i in t):
+            raise ValueError(f"profiles must be equally long index tuples into {len(self.members)} members")
+
+    @property
+    def names(self) -> list[str]:
+        """Each profile as "a|b" (member ids in profile order)."""
+        return ["|".join(self.members[i] for i in t) for t in self.profiles]
+
+    def draw(self, rng: np.random.Generator, n: int, slots: int) -> np.ndarray:
+        if len(self.profiles[0]) != slots:
+            raise ValueError(f"profiles fill {len(self.profiles[0])} slots, the episode has {slots}")
+        p = np.asarray(self.probs, dtype=np.float64)
+        picks = rng.choice(len(self.profiles), size=n, p=p / p.sum())
+        return np.asarray(self.profiles, dtype=np.int64)[picks]
+
+
+def profiles(dist: Mapping[tuple[str, ...], float]) -> Profiles:
+    """A Profiles distribution from {profile (member ids): probability}."""
+    members = tuple(dict.fromkeys(m for profile in dist for m in profile))
+    index = {m: i for i, m in enumerate(members)}
+    return Profiles(members, tuple(tuple(index[m] for m in t) for t in dist), tuple(float(p) for p in dist.values()))
+
+
 def describe(dist: PartnerDistribution | None) -> dict[str, Any]:
     """A JSON summary of a distribution (its class, members and, when weighted, probabilities)."""
     if dist is None:
         return {"kind": "self-play"}
     out: dict[str, Any] = {"kind": type(dist).__name__, "members": list(dist.members)}
+    if isinstance(dist, Profiles):
+        out["profiles"] = dist.names
     if hasattr(dist, "probs"):
         out["probs"] = [float(p) for p in dist.probs]
     return out
