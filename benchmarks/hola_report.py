@@ -1,103 +1,415 @@
-"""HOLA-Drone V2 vs HOLA-Drone V2 w/o g vs SP with the same env-step budget, evaluated on Zoo 3.
+"""HOLA-Drone V2 vs its "w/o g" ablation vs SP vs PBT at equal budgets, evaluated on the unseen zoos.
 
-For each algorithm and seed, the population service trains on the task (default 4p2e5o);
-the run's final learner is then evaluated with Zoo 3 partners (the unseen drones) by the
-evaluation protocol. Prints the SUC / COL / AST / REW table as mean +- std over seeds and
-writes it as JSON (and the per-run rows as CSV) to --out.
-Usage: python benchmarks/hola_report.py [--task 4p2e5o] [--seeds 0 1 2] [--generations 4]
-       [--updates 12] [--episodes 500] [--out reports/hola_vs_sp]
+Three resumable phases, each skipping what is already on disk (run it again, or with
+``--resume`` after a kill, and it continues where it stopped):
+
+1. train: for every task x algorithm x seed, a population-service run of about
+   ``--env-steps`` environment steps (same PPO preset, same updates of 64 x 128 env
+   steps; the budget per algorithm is stated in the report: env steps, learner samples
+   and evaluation env steps). An interrupted run is resumed from its last generation.
+2. evaluate: each run's final learner (HOLA: the last generation's learner; SP: the last
+   member; PBT: the final member with the best fitness) with partners drawn from Zoos
+   1-3, ``--episodes`` episodes per zoo, the same evaluation seed for every algorithm.
+   SP is also evaluated at the generation whose learner samples are closest to HOLA's
+   (SP trains all four slots, HOLA two): "sp@samples".
+3. report: SUC / COL / AST / REW as mean +- std over seeds; paired differences against SP
+   (the same seed's runs) with standard errors over seeds; the cross-play matrix of the
+   final learners (row: learner, column: the member filling both partner slots); rho
+   entropy over generations; figures.
+
+Usage: python benchmarks/hola_report.py [--tasks 4p2e5o 4p3e5o] [--seeds 0 1 2]
+       [--algorithms hola hola_no_g sp pbt] [--phases train evaluate report]
+       [--out reports/hola_report] [--results benchmarks/results/hola_report]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pandas as pd
 
-ALGORITHMS = ("hola", "hola_no_g", "sp")
+ALGORITHMS = ("hola", "hola_no_g", "sp", "pbt")
 METRICS = ("SUC", "COL", "AST", "REW")
+ZOOS = ("zoo1", "zoo2", "zoo3")
+UPDATE_ENV_STEPS = 64 * 128  # ppo.num_envs x ppo.rollout_steps of the default preset
+
+
+def plan(algorithm: str, env_steps: int, updates: int, hola: dict[str, Any]) -> dict[str, Any]:
+    """Generations and the algorithm section giving about ``env_steps`` env steps per run."""
+    total = max(1, round(env_steps / UPDATE_ENV_STEPS))  # learner updates of the whole run
+    if algorithm in ("hola", "hola_no_g"):
+        pi0 = hola["pi0_seeds"]  # generation 0 trains pi0_seeds self-play runs of `updates` updates each
+        return {"generations": 1 + math.ceil((total - pi0 * updates) / updates), algorithm: dict(hola)}
+    if algorithm == "pbt":  # two members, each `updates / 2` updates per generation
+        return {
+            "generations": math.ceil(total / updates),
+            "updates_per_generation": updates // 2,
+            "pbt": {"population_size": 2},
+        }
+    return {"generations": math.ceil(total / updates), algorithm: {}}
+
+
+def experiment(task: str, algorithm: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
+    hola = {
+        "pi0_seeds": 2,
+        "pi0_levels": 2,
+        "learner_start": args.learner_start,
+        "weight": args.weight,
+        "min_episodes": 32,
+        "max_episodes": 128,
+        "max_hyperedges": 12,
+    }
+    doc = {
+        "name": run_name(task, algorithm, seed),
+        "algorithm": algorithm,
+        "task": task,
+        "seed": seed,
+        "updates_per_generation": args.updates,
+        "num_workers": 2,
+        "eval_episodes": 48,
+        "final_zoo": "",
+        "gif": False,
+        "out_dir": str(Path(args.out) / "runs"),
+    }
+    doc.update(plan(algorithm, args.env_steps, args.updates, hola))
+    return doc
+
+
+def run_name(task: str, algorithm: str, seed: int) -> str:
+    return f"{task}-{algorithm}-s{seed}"
+
+
+def write_json(path: Path, data: Any) -> None:
+    from atdrone.fileio import atomic_write_bytes
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, json.dumps(data, indent=2, default=float).encode())
+
+
+# ------------------------------------------------------------------ phase 1
+def train(args: argparse.Namespace) -> None:
+    from atdrone.service.driver import init_ray, run_experiment
+    from atdrone.service.experiment import load_experiment
+
+    init_ray(None, num_cpus=2)
+    tracking = f"sqlite:///{Path(args.out).resolve() / 'mlflow.db'}"
+    for task in args.tasks:
+        for seed in args.seeds:
+            for algorithm in args.algorithms:
+                cfg = load_experiment(experiment(task, algorithm, seed, args))
+                run_dir = Path(cfg.out_dir) / cfg.name
+                if (run_dir / "population.csv").exists():
+                    continue
+                resume = (run_dir / "service_state.json").exists()
+                print(
+                    f"[train] {cfg.name}: {'resuming' if resume else 'starting'} ({cfg.generations} generations)",
+                    flush=True,
+                )
+                t0 = time.perf_counter()
+                run_experiment(cfg, resume=resume, tracking_uri=tracking, progress=True)
+                print(f"[train] {cfg.name}: done in {time.perf_counter() - t0:.0f}s", flush=True)
+
+
+# ------------------------------------------------------------------ phase 2
+def final_member(run_dir: Path, algorithm: str) -> str:
+    state = json.loads((run_dir / "service_state.json").read_text())["coordinator"]
+    alg = state["algorithm"]
+    if algorithm == "pbt":
+        last = sorted((run_dir / "generations").iterdir())[-1] / "pbt.json"
+        fitness = json.loads(last.read_text())["fitness"]
+        return max(alg["population"], key=lambda m: (fitness.get(m, -1.0), m))
+    if algorithm in ("hola", "hola_no_g"):
+        return str(alg["learners"][-1])
+    return str(alg["population"][-1])
+
+
+def evaluate_runs(args: argparse.Namespace) -> None:
+    from atdrone.policies.neural import load_policy
+    from atdrone.teams.evaluation import evaluate
+
+    for task in args.tasks:
+        for seed in args.seeds:
+            for algorithm in args.algorithms:
+                run_dir = Path(args.out) / "runs" / run_name(task, algorithm, seed)
+                target = Path(args.out) / "eval" / f"{run_dir.name}.json"
+                if target.exists() or not (run_dir / "population.csv").exists():
+                    continue
+                members = {algorithm: final_member(run_dir, algorithm)}
+                if algorithm == "sp":
+                    members["sp@samples"] = sp_at_samples(run_dir, task, seed, args)
+                rows = []
+                for label, member in members.items():
+                    if member is None:
+                        continue
+                    policy = load_policy(run_dir / "members" / f"{member}.pt")
+                    for zoo in ZOOS:
+                        t0 = time.perf_counter()
+                        result = evaluate(policy, task, zoo, episodes=args.episodes, seeds=[1000 + seed])
+                        rows.append({"algorithm": label, "member": member, "zoo": zoo, **result.mean})
+                        print(
+                            f"[evaluate] {run_dir.name} {label} {member} {zoo}: SUC {result.mean['SUC']:.1f} "
+                            f"({time.perf_counter() - t0:.0f}s)",
+                            flush=True,
+                        )
+                write_json(
+                    target,
+                    {"task": task, "seed": seed, "episodes": args.episodes, "rows": rows, "budget": budget_of(run_dir)},
+                )
+
+
+def budget_of(run_dir: Path) -> dict[str, Any]:
+    state = json.loads((run_dir / "service_state.json").read_text())["coordinator"]
+    return dict(state.get("budget", {}))
+
+
+def sp_at_samples(run_dir: Path, task: str, seed: int, args: argparse.Namespace) -> str | None:
+    """The SP member whose learner samples are closest to the HOLA run's (same task and seed)."""
+    hola_dir = Path(args.out) / "runs" / run_name(task, "hola", seed)
+    if not (hola_dir / "service_state.json").exists():
+        return None
+    target = budget_of(hola_dir)["learner_samples"]
+    state = json.loads((run_dir / "service_state.json").read_text())["coordinator"]
+    members = state["algorithm"]["population"]
+    per_member = budget_of(run_dir)["learner_samples"] / len(members)  # SP: equal samples per generation
+    index = int(np.clip(round(target / per_member) - 1, 0, len(members) - 1))
+    return str(members[index])
+
+
+def crossplay(args: argparse.Namespace) -> None:
+    """Final learners of the algorithms with each other: row learner, column partner (both partner slots)."""
+    from atdrone.policies.neural import load_policy
+    from atdrone.teams.evaluation import metrics, run_episodes
+
+    for task in args.tasks:
+        for seed in args.seeds:
+            target = Path(args.out) / "crossplay" / f"{task}-s{seed}.json"
+            runs = {a: Path(args.out) / "runs" / run_name(task, a, seed) for a in args.algorithms}
+            if target.exists() or not all((d / "population.csv").exists() for d in runs.values()):
+                continue
+            policies = {a: load_policy(d / "members" / f"{final_member(d, a)}.pt") for a, d in runs.items()}
+            matrix: dict[str, dict[str, float]] = {}
+            for a, learner in policies.items():
+                matrix[a] = {}
+                for b, partner in policies.items():
+                    records = run_episodes(
+                        learner,
+                        task,
+                        [partner],
+                        args.crossplay_episodes,
+                        seed=2000 + seed,
+                        sampler=lambda rng, n: np.zeros((n, 2), dtype=np.int64),
+                    )
+                    matrix[a][b] = metrics(records)["SUC"]
+            print(f"[crossplay] {task} seed {seed}: {matrix}", flush=True)
+            write_json(target, {"task": task, "seed": seed, "episodes": args.crossplay_episodes, "SUC": matrix})
+
+
+# ------------------------------------------------------------------ phase 3
+def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
+    rows = []
+    for task in args.tasks:
+        for seed in args.seeds:
+            for algorithm in ("hola", "hola_no_g"):
+                gens = Path(args.out) / "runs" / run_name(task, algorithm, seed) / "generations"
+                for doc in sorted(gens.glob("*/hypergraph.json")) if gens.exists() else []:
+                    graph = json.loads(doc.read_text())
+                    rho = np.array(list(graph["rho"].values()))
+                    rows.append(
+                        {
+                            "task": task,
+                            "algorithm": algorithm,
+                            "seed": seed,
+                            "generation": int(doc.parent.name),
+                            "rho_entropy": float(-(rho * np.log(rho)).sum()),
+                            "max_entropy": float(np.log(len(rho))),
+                            "max_rho": float(rho.max()),
+                            "contested_return": graph["resolution"]["return"]["contested_nodes"]
+                            / max(graph["resolution"]["return"]["nodes"], 1),
+                            "contested_SUC": graph["resolution"]["SUC"]["contested_nodes"]
+                            / max(graph["resolution"]["SUC"]["nodes"], 1),
+                        }
+                    )
+    return pd.DataFrame(rows)
+
+
+def report(args: argparse.Namespace) -> None:
+    evals = []
+    budget_rows = []
+    for path in sorted((Path(args.out) / "eval").glob("*.json")):
+        doc = json.loads(path.read_text())
+        for row in doc["rows"]:
+            evals.append({"task": doc["task"], "seed": doc["seed"], **row})
+        budget_rows.append({"run": path.stem, **doc["budget"]})
+    if not evals:
+        print("[report] nothing evaluated yet")
+        return
+    frame = pd.DataFrame(evals)
+    lines = [f"# HOLA-Drone V2 vs SP: {', '.join(args.tasks)}", ""]
+    lines.append(
+        f"Evaluation: {args.episodes} episodes per run and zoo; mean +- std over seeds "
+        f"(n: seeds). Paired differences: algorithm - SP of the same seed, "
+        f"mean +- standard error over seeds."
+    )
+    doc: dict[str, Any] = {"episodes": args.episodes, "cells": [], "paired": [], "budget": budget_rows}
+    for (task, zoo), cell in frame.groupby(["task", "zoo"], sort=True):
+        lines += [
+            "",
+            f"## {task}, {zoo}",
+            "",
+            "| algorithm | n | " + " | ".join(METRICS) + " |",
+            "|---" * (len(METRICS) + 2) + "|",
+        ]
+        for algorithm, g in cell.groupby("algorithm", sort=False):
+            stats = {m: (float(g[m].mean()), float(g[m].std(ddof=0))) for m in METRICS}
+            doc["cells"].append(
+                {
+                    "task": task,
+                    "zoo": zoo,
+                    "algorithm": algorithm,
+                    "n": len(g),
+                    **{m: {"mean": v[0], "std": v[1]} for m, v in stats.items()},
+                }
+            )
+            lines.append(
+                f"| {algorithm} | {len(g)} | " + " | ".join(f"{v[0]:.1f} +- {v[1]:.1f}" for v in stats.values()) + " |"
+            )
+        sp = cell[cell.algorithm == "sp"].set_index("seed")
+        for algorithm, g in cell[cell.algorithm != "sp"].groupby("algorithm", sort=False):
+            paired = g.set_index("seed")[list(METRICS)].sub(sp[list(METRICS)]).dropna(how="all")
+            if len(paired) < 2:
+                continue
+            diffs = {m: (float(paired[m].mean()), float(paired[m].std(ddof=1) / np.sqrt(len(paired)))) for m in METRICS}
+            doc["paired"].append(
+                {
+                    "task": task,
+                    "zoo": zoo,
+                    "algorithm": algorithm,
+                    "n": len(paired),
+                    **{m: {"diff": d, "se": s} for m, (d, s) in diffs.items()},
+                }
+            )
+            lines.append(
+                f"| {algorithm} - sp | {len(paired)} | "
+                + " | ".join(f"{d:+.1f} +- {s:.1f}" for d, s in diffs.values())
+                + " |"
+            )
+    if budget_rows:
+        lines += [
+            "",
+            "## Budgets per run",
+            "",
+            "| run | env steps | learner samples | eval env steps |",
+            "|---|---|---|---|",
+        ]
+        lines += [
+            "| "
+            + " | ".join([b["run"], *(f"{b.get(k, 0):,}" for k in ("env_steps", "learner_samples", "eval_env_steps"))])
+            + " |"
+            for b in budget_rows
+        ]
+    cross = []
+    for path in sorted((Path(args.out) / "crossplay").glob("*.json")):
+        c = json.loads(path.read_text())
+        cross += [
+            {"task": c["task"], "seed": c["seed"], "learner": a, "partner": b, "SUC": v}
+            for a, row in c["SUC"].items()
+            for b, v in row.items()
+        ]
+    if cross:
+        cp = pd.DataFrame(cross).groupby(["task", "learner", "partner"])["SUC"].mean().unstack()
+        doc["crossplay"] = {t: cp.loc[t].to_dict(orient="index") for t in cp.index.get_level_values(0).unique()}
+        for t in doc["crossplay"]:
+            lines += [
+                "",
+                f"## Cross-play SUC on {t} (row: learner; column: partner in both partner slots; mean over seeds)",
+                "",
+                md_table(cp.loc[t].round(1)),
+            ]
+    ent = rho_entropy(args)
+    if len(ent):
+        doc["rho_entropy"] = ent.to_dict(orient="records")
+        summary = (
+            ent.groupby(["task", "algorithm", "generation"])[
+                ["rho_entropy", "max_entropy", "max_rho", "contested_return", "contested_SUC"]
+            ]
+            .mean()
+            .round(3)
+        )
+        lines += ["", "## rho over generations (mean over seeds)", "", md_table(summary)]
+        plot_entropy(ent, Path(args.results) / "rho_entropy.png")
+    text = "\n".join(lines)
+    print(text)
+    doc["text"] = text
+    results = Path(args.results)
+    write_json(results / "report.json", doc)
+    (results / "report.md").write_text(text + "\n")
+    frame.to_csv(results / "evaluations.csv", index=False)
+
+
+def md_table(frame: pd.DataFrame) -> str:
+    """A markdown table of a frame, its index as the first columns."""
+    flat = frame.reset_index()
+    rows = ["| " + " | ".join(map(str, flat.columns)) + " |", "|---" * len(flat.columns) + "|"]
+    rows += ["| " + " | ".join(str(v) for v in row) + " |" for row in flat.itertuples(index=False)]
+    return "\n".join(rows)
+
+
+def plot_entropy(ent: pd.DataFrame, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = sorted(ent.task.unique())
+    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 3.5), squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
+        sub = ent[ent.task == task]
+        for algorithm, g in sub.groupby("algorithm"):
+            m = g.groupby("generation")["rho_entropy"].agg(["mean", "std"])
+            ax.errorbar(m.index, m["mean"], yerr=m["std"].fillna(0), label=algorithm, capsize=3)
+        m = sub.groupby("generation")["max_entropy"].mean()
+        ax.plot(m.index, m.values, "k:", label="log |Pi - N_t| (uniform)")
+        ax.set_title(f"rho entropy, {task}")
+        ax.set_xlabel("generation")
+        ax.set_ylabel("nats")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--task", default="4p2e5o")
+    parser.add_argument("--tasks", nargs="+", default=["4p2e5o", "4p3e5o"])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--generations", type=int, default=4)
-    parser.add_argument("--updates", type=int, default=12, help="PPO updates per generation")
-    parser.add_argument("--envs-per-worker", type=int, default=32)
-    parser.add_argument("--episodes", type=int, default=500, help="Zoo 3 evaluation episodes per run")
-    parser.add_argument("--zoo", default="zoo3")
-    parser.add_argument("--out", default="reports/hola_vs_sp")
+    parser.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS), choices=ALGORITHMS)
+    parser.add_argument(
+        "--phases", nargs="+", default=["train", "evaluate", "report"], choices=["train", "evaluate", "report"]
+    )
+    parser.add_argument("--env-steps", type=int, default=1_048_576, help="training env steps per run (about)")
+    parser.add_argument("--updates", type=int, default=16, help="PPO updates per learner per generation")
+    parser.add_argument("--weight", default="return", choices=["return", "SUC"], help="HOLA hyperedge weight")
+    parser.add_argument("--learner-start", default="last", choices=["last", "scratch"])
+    parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per run and zoo")
+    parser.add_argument("--crossplay-episodes", type=int, default=200)
+    parser.add_argument("--resume", action="store_true", help="accepted for clarity: every phase always resumes")
+    parser.add_argument("--out", default="reports/hola_report", help="runs, evaluations (not committed)")
+    parser.add_argument("--results", default="benchmarks/results/hola_report", help="the committed report")
     args = parser.parse_args()
-
-    from atdrone.policies.neural import load_policy
-    from atdrone.service.driver import init_ray, run_experiment
-    from atdrone.service.experiment import load_experiment
-    from atdrone.teams.evaluation import evaluate
-
-    init_ray(None, num_cpus=2)
-    out = Path(args.out)
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    rows = []
-    for algorithm in ALGORITHMS:
-        for seed in args.seeds:
-            cfg = load_experiment(
-                {
-                    "name": f"report-{algorithm}-s{seed}-{stamp}",
-                    "algorithm": algorithm,
-                    "task": args.task,
-                    "seed": seed,
-                    "generations": args.generations,
-                    "updates_per_generation": args.updates,
-                    "ppo": {"num_envs": 2 * args.envs_per_worker},
-                    "final_zoo": "",
-                    "gif": False,
-                    "out_dir": str(out / "runs"),
-                }
-            )
-            t0 = time.perf_counter()
-            summary = run_experiment(cfg, progress=False)
-            final = summary["reports"][-1].learners[-1]
-            policy = load_policy(Path(summary["run_dir"]) / "members" / f"{final}.pt")
-            result = evaluate(policy, args.task, args.zoo, episodes=args.episodes, seeds=[seed])
-            row = {"algorithm": algorithm, "seed": seed, "member": final, **result.mean}
-            row["wall_s"] = time.perf_counter() - t0
-            rows.append(row)
-            print(json.dumps(row), flush=True)
-    frame = pd.DataFrame(rows)
-    table = frame.groupby("algorithm")[list(METRICS)].agg(["mean", "std"]).reindex(list(ALGORITHMS))
-    env_steps = args.generations * args.updates * 2 * args.envs_per_worker * 128
-    lines = [
-        f"{args.task}, {env_steps} env steps per run, {len(args.seeds)} seeds, {args.zoo} partners "
-        f"({args.episodes} episodes per run): mean +- std over seeds"
-    ]
-    lines.append(f"{'algorithm':<10} " + " ".join(f"{m:>16}" for m in METRICS))
-    for algorithm in ALGORITHMS:
-        cells = [
-            f"{table.loc[algorithm, (m, 'mean')]:7.1f} +- {table.loc[algorithm, (m, 'std')]:5.1f}" for m in METRICS
-        ]
-        lines.append(f"{algorithm:<10} " + " ".join(f"{c:>16}" for c in cells))
-    text = "\n".join(lines)
-    print(text)
-    out.mkdir(parents=True, exist_ok=True)
-    from atdrone.fileio import atomic_write_bytes
-
-    atomic_write_bytes(out / "runs.csv", frame.to_csv(index=False).encode())
-    doc = {
-        "task": args.task,
-        "zoo": args.zoo,
-        "env_steps_per_run": env_steps,
-        "seeds": args.seeds,
-        "table": {
-            a: {m: {"mean": table.loc[a, (m, "mean")], "std": table.loc[a, (m, "std")]} for m in METRICS}
-            for a in ALGORITHMS
-        },
-        "text": text,
-    }
-    atomic_write_bytes(out / "table.json", json.dumps(doc, indent=2, default=float).encode())
+    if "train" in args.phases:
+        train(args)
+    if "evaluate" in args.phases:
+        evaluate_runs(args)
+        crossplay(args)
+    if "report" in args.phases:
+        report(args)
 
 
 if __name__ == "__main__":

@@ -162,6 +162,10 @@ class Algorithm:
     def check_config(cls, cfg: Any, path: str) -> None:
         """Further checks of a parsed section (raise ConfigError)."""
 
+    @classmethod
+    def check_experiment(cls, cfg: Any, experiment: Any, path: str) -> None:
+        """Checks of the section against the experiment's shared settings (raise ConfigError)."""
+
     def generation(self, oracle: Oracle) -> GenerationReport:
         raise NotImplementedError
 

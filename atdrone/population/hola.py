@@ -109,6 +109,15 @@ class Hola(Algorithm):
                 f"must be 0 (no cap) or hold Pi_0 and a generation's learners ({smallest}), got {cfg.population_size}",
             )
 
+    @classmethod
+    def check_experiment(cls, cfg: Any, experiment: Any, path: str) -> None:
+        if experiment.updates_per_generation < cfg.pi0_levels:
+            raise ConfigError(
+                f"{path}.pi0_levels",
+                f"{cfg.pi0_levels} skill levels need updates_per_generation >= {cfg.pi0_levels}, "
+                f"got {experiment.updates_per_generation}",
+            )
+
     # ------------------------------------------------------------ generation
     def generation(self, oracle: Oracle) -> GenerationReport:
         if not self.population:
@@ -146,9 +155,7 @@ class Hola(Algorithm):
     def _pi0(self, oracle: Oracle) -> GenerationReport:
         """Pi_0: pi0_seeds self-play runs, each frozen at pi0_levels skill levels; N_0: the first seeds' finals."""
         cfg = self.config
-        total = oracle.updates_per_generation
-        if total < cfg.pi0_levels:
-            raise ValueError(f"updates_per_generation ({total}) must be >= hola.pi0_levels ({cfg.pi0_levels})")
+        total = oracle.updates_per_generation  # >= pi0_levels (check_experiment)
         splits = [total // cfg.pi0_levels + (i < total % cfg.pi0_levels) for i in range(cfg.pi0_levels)]
         training: list[TrainingRecord] = []
         finals = []

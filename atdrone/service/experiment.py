@@ -118,7 +118,7 @@ def load_experiment(path_or_doc: str | Path | dict[str, Any], **overrides: Any) 
         raise ConfigError(
             "ppo.num_envs", f"{ppo.num_envs} environments cannot be split evenly over {cfg.num_workers} workers"
         )
-    cfg.algorithm_config()  # errors name "<algorithm>.<key>"
+    ALGORITHMS[cfg.algorithm].check_experiment(cfg.algorithm_config(), cfg, cfg.algorithm)  # "<algorithm>.<key>"
     if cfg.final_zoo:
         try:
             load_zoo(cfg.final_zoo)
