@@ -57,16 +57,17 @@ def plan(algorithm: str, env_steps: int, updates: int, hola: dict[str, Any]) -> 
 
 def experiment(task: str, algorithm: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
     hola = {
-        "pi0_seeds": 2,
-        "pi0_levels": 2,
+        "pi0_seeds": args.pi0_seeds,
+        "pi0_levels": args.pi0_levels,
         "learner_start": args.learner_start,
         "weight": args.weight,
+        "eta_prior": args.eta_prior,
         "min_episodes": 32,
         "max_episodes": 128,
         "max_hyperedges": 12,
     }
     doc = {
-        "name": run_name(task, algorithm, seed),
+        "name": run_name(task, algorithm, seed, args.tag),
         "algorithm": algorithm,
         "task": task,
         "seed": seed,
@@ -81,8 +82,9 @@ def experiment(task: str, algorithm: str, seed: int, args: argparse.Namespace) -
     return doc
 
 
-def run_name(task: str, algorithm: str, seed: int) -> str:
-    return f"{task}-{algorithm}-s{seed}"
+def run_name(task: str, algorithm: str, seed: int, tag: str = "") -> str:
+    """A run's name; a variant (``--tag``) is a separate run next to the main ones."""
+    return f"{task}-{algorithm}{'+' + tag if tag else ''}-s{seed}"
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -136,12 +138,13 @@ def evaluate_runs(args: argparse.Namespace) -> None:
     for task in args.tasks:
         for seed in args.seeds:
             for algorithm in args.algorithms:
-                run_dir = Path(args.out) / "runs" / run_name(task, algorithm, seed)
+                run_dir = Path(args.out) / "runs" / run_name(task, algorithm, seed, args.tag)
                 target = Path(args.out) / "eval" / f"{run_dir.name}.json"
                 if target.exists() or not (run_dir / "population.csv").exists():
                     continue
-                members = {algorithm: final_member(run_dir, algorithm)}
-                if algorithm == "sp":
+                label = f"{algorithm}+{args.tag}" if args.tag else algorithm
+                members = {label: final_member(run_dir, algorithm)}
+                if algorithm == "sp" and not args.tag:
                     members["sp@samples"] = sp_at_samples(run_dir, task, seed, args)
                 rows = []
                 for label, member in members.items():
@@ -186,6 +189,8 @@ def crossplay(args: argparse.Namespace) -> None:
     from atdrone.policies.neural import load_policy
     from atdrone.teams.evaluation import metrics, run_episodes
 
+    if args.tag:
+        return
     for task in args.tasks:
         for seed in args.seeds:
             target = Path(args.out) / "crossplay" / f"{task}-s{seed}.json"
@@ -215,8 +220,8 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
     rows = []
     for task in args.tasks:
         for seed in args.seeds:
-            for algorithm in ("hola", "hola_no_g"):
-                gens = Path(args.out) / "runs" / run_name(task, algorithm, seed) / "generations"
+            for run_dir in sorted((Path(args.out) / "runs").glob(f"{task}-hola*-s{seed}")):
+                algorithm, gens = run_dir.name[len(task) + 1 : -len(f"-s{seed}")], run_dir / "generations"
                 for doc in sorted(gens.glob("*/hypergraph.json")) if gens.exists() else []:
                     graph = json.loads(doc.read_text())
                     rho = np.array(list(graph["rho"].values()))
@@ -397,6 +402,10 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=16, help="PPO updates per learner per generation")
     parser.add_argument("--weight", default="return", choices=["return", "SUC"], help="HOLA hyperedge weight")
     parser.add_argument("--learner-start", default="last", choices=["last", "scratch"])
+    parser.add_argument("--pi0-seeds", type=int, default=2, help="HOLA: self-play seeds of Pi_0")
+    parser.add_argument("--pi0-levels", type=int, default=2, help="HOLA: skill levels per Pi_0 seed")
+    parser.add_argument("--eta-prior", type=float, default=1.0, help="HOLA: the prior count of rho's eta")
+    parser.add_argument("--tag", default="", help="a variant's name: its runs and rows are '<algorithm>+<tag>'")
     parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per run and zoo")
     parser.add_argument("--crossplay-episodes", type=int, default=200)
     parser.add_argument("--resume", action="store_true", help="accepted for clarity: every phase always resumes")
