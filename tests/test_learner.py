@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -188,6 +189,9 @@ def test_rollout_records_partner_draws_and_executed_turns():
     assert slots.shape == (200, 4, 2) and np.all(np.sort(slots, -1)[..., 0] != np.sort(slots, -1)[..., 1])
     ended = [e for e in frag.episodes]
     assert ended and all(len(e["partners"]) == 2 for e in ended)
-    assert sum(worker.drawn.values()) == len(ended)
+    # drawn: the profile (ids sorted) of every episode started, the 4 first ones and one after each end
+    assert sum(worker.drawn.values()) == len(ended) + 4
+    ends: Counter[str] = Counter("|".join(sorted(e["partners"])) for e in ended)
+    assert all(worker.drawn[profile] >= n for profile, n in ends.items())
     flat = frag.batch(ppo.gamma, ppo.gae_lambda, extras=True)
     assert flat["partner_members"].shape == (200 * 4 * 2, 2)
