@@ -13,7 +13,7 @@ Vocabulary:
   hyperedge's node set is its set of *distinct* members and ``|e|`` their number. The
   canonical form of a team is :func:`team_key`, the sorted tuple.
 - A team's *weight* is its mean outcome over its evaluation episodes (with a standard
-  error, see :func:`unresolved_hyperedges`).
+  error, see :func:`pooled` and :func:`contested_preferences`).
 
 One generation t, as :class:`atdrone.population.hola.Hola` runs it::
 
@@ -220,7 +220,7 @@ def profile_distribution(rho: dict[str, float], num_partners: int) -> dict[Team,
     if num_partners < 1:
         raise ValueError(f"num_partners must be >= 1, got {num_partners}")
     ids = [m for m, p in rho.items() if p > 0]
-    if not ids or any(p < 0 for p in rho.values()):
+    if not ids or not all(p >= 0 for p in rho.values()):  # also refuses NaN
         raise ValueError(f"rho must be a distribution with some positive mass, got {rho}")
     weights = {profile: math.prod(rho[m] for m in profile) for profile in _subsets(ids, num_partners)}
     total = math.fsum(weights.values())
@@ -228,7 +228,10 @@ def profile_distribution(rho: dict[str, float], num_partners: int) -> dict[Team,
 
 
 def member_shares(profiles: dict[Team, float]) -> dict[str, float]:
-    """The share of episodes each member plays in under a profile distribution (sums to M)."""
+    """The expected partner slots per episode each member fills under a profile distribution (sums to M).
+
+    With distinct members this is the share of episodes the member plays in.
+    """
     share: dict[str, float] = {}
     for profile, p in profiles.items():
         for m in profile:
