@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -47,33 +48,97 @@ def _cfg(tmp_path, name, **kw):
     return load_experiment({**TINY, "name": name, "out_dir": str(tmp_path), **kw})
 
 
+# a small HOLA run: Pi_0 is one self-play seed frozen at 3 skill levels (one update each), then 3 updates a generation
+HOLA = {"pi0_seeds": 1, "pi0_levels": 3, "min_episodes": 4, "max_episodes": 8}
+
+
+def _check_budget(cfg, reports) -> None:
+    """Every training took updates x num_envs x rollout_steps env steps; the budget is the running total."""
+    steps = samples = eval_steps = 0
+    for report in reports:
+        for t in report.training:
+            assert t.env_steps == len(t.history) * cfg.ppo["num_envs"] * cfg.ppo["rollout_steps"]
+            assert t.samples == sum(h["train/samples"] for h in t.history) > 0
+        steps += sum(t.env_steps for t in report.training)
+        samples += sum(t.samples for t in report.training)
+        eval_steps += sum(int(m.metrics["steps"]) for m in report.matches)
+        assert report.budget == {"env_steps": steps, "learner_samples": samples, "eval_env_steps": eval_steps}
+
+
+def _check_hola_generation(report, learner: str, others: list[str]) -> dict:
+    """Generation t of HOLA with N_t = [learner]: G'_t, rho over Pi minus N_t, training on draws from its profiles."""
+    graph = report.documents["hypergraph.json"]
+    g_t = {(learner, learner, *pair) for pair in itertools.combinations(others, 2)}
+    assert {m.team for m in report.matches} == g_t  # every match is a hyperedge of G'_t, and each was played
+    assert graph["learners"] == [learner]
+    assert {tuple(e["team"]) for e in graph["hyperedges"]} == g_t
+    assert all(4 <= e["episodes"] <= 8 for e in graph["hyperedges"]) and graph["rounds"] >= 1
+    assert list(graph["rho"]) == others and abs(sum(graph["rho"].values()) - 1) < 1e-9  # never N_t
+    assert set(graph["eta"]) == {learner, *others}
+    assert set(graph["profiles"]) == {"|".join(sorted(p)) for p in itertools.combinations(others, 2)}
+    assert abs(sum(graph["profiles"].values()) - 1) < 1e-9
+    (trained,) = report.training
+    assert report.learners == [trained.member] and report.population[-1] == trained.member
+    assert trained.parent == learner  # learner_start "last": N_t's member, continued
+    assert trained.partners["kind"] == "Profiles" and set(trained.partners["members"]) == set(others)
+    # the rollout's counts of the profiles it drew: rho's members only, and what hypergraph.json reports
+    assert sum(trained.drawn.values()) > 0
+    assert all(set(profile.split("|")) <= set(others) for profile in trained.drawn)
+    assert set(trained.drawn) <= set(graph["profiles"])
+    assert graph["drawn_profiles"] == trained.drawn
+    slots = {m: sum(n for profile, n in trained.drawn.items() if m in profile.split("|")) for m in others}
+    assert graph["drawn_members"] == {m: n for m, n in sorted(slots.items()) if n}
+    return graph
+
+
 def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    cfg = _cfg(tmp_path, "hola_t", algorithm="hola", generations=3, hola={"population_size": 3})
+    cfg = _cfg(tmp_path, "hola_t", algorithm="hola", generations=3, updates_per_generation=3, hola=HOLA)
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     reg = Registry(tmp_path / "hola_t" / "registry.db")
-    members = reg.members(run="hola_t")
-    # generation 0 bootstraps with a self-play learner, then one best-response learner per generation
-    assert sorted(members["generation"]) == [0, 1, 2]
-    assert list(members["status"]) == ["active"] * 3
-    g0, g1, g2 = members.sort_values("generation")["id"]
-    assert list(members.sort_values("generation")["parents"]) == [[], [g0], [g1]]
+    members = reg.members(run="hola_t").sort_values(["generation", "id"])
+    # generation 0 registers Pi_0: the seed's snapshots, each continuing the last; then one learner a generation
+    assert list(members["generation"]) == [0, 0, 0, 1, 2]
+    assert list(members["status"]) == ["active"] * 5  # no cap: the population only grows
+    p0, p1, p2, g1, g2 = members["id"]
+    assert list(members["parents"]) == [[], [p0], [p1], [p2], [g1]]
     for _, m in members.iterrows():
         assert read_header(m["checkpoint"])["sha256"] == m["sha256"]
-    # generation 2 played the hyperedges touching generation 1's learner: only (g1, g1, g0, g0)
+    r0, r1, r2 = summary["reports"]
+    assert r0.learners == [p2] and r0.population == [p0, p1, p2]  # N_0: the final snapshot
+    assert [t.member for t in r0.training] == [p0, p1, p2] and [t.parent for t in r0.training] == [None, p0, p1]
+    assert r0.documents["pi0.json"] == {"seeds": 1, "levels": [1, 1, 1], "members": [p0, p1, p2]}
+    assert all(t.partners == {"kind": "self-play"} and not t.drawn for t in r0.training) and not r0.matches
+    # generation t >= 1 plays exactly G'_t: N_t's learner in its 2 slots with each 2-subset of Pi minus N_t
     matches = reg.matches(run="hola_t")
-    assert [sorted(t) for t in matches["team"]] == [sorted([g1, g1, g0, g0])]
-    assert set(matches["generation"]) == {2}
-    report = summary["reports"][2]
-    graph = report.documents["hypergraph.json"]
-    assert set(graph["rho"]) == {g0, g1} and abs(sum(graph["rho"].values()) - 1) < 1e-9
-    # the learner trained with exactly the draws the rollout recorded: profiles of rho's members only
-    (trained,) = report.training
-    assert trained.partners["members"] == list(graph["rho"]) and sum(trained.drawn.values()) > 0
-    assert all(set(profile.split("|")) <= {g0, g1} for profile in trained.drawn)
-    assert graph["drawn_profiles"] == trained.drawn
-    assert list(summary["population"]["member"]) == [g0, g1, g2]
-    assert {"zoo1_SUC", "zoo1_COL", "zoo1_AST", "zoo1_REW"} <= set(summary["population"].columns)
+    assert set(matches["generation"]) == {1, 2}
+    assert {tuple(t) for t in matches.loc[matches["generation"] == 1, "team"]} == {(p2, p2, p0, p1)}
+    graph1 = _check_hola_generation(r1, p2, [p0, p1])
+    assert graph1["profiles"] == {"|".join(sorted([p0, p1])): pytest.approx(1.0)}
+    assert {tuple(t) for t in matches.loc[matches["generation"] == 2, "team"]} == {
+        (g1, g1, p0, p1),
+        (g1, g1, p0, p2),
+        (g1, g1, p1, p2),
+    }
+    graph2 = _check_hola_generation(r2, g1, [p0, p1, p2])
+    assert r2.population == [p0, p1, p2, g1, g2] and not r2.removed
+    # the budget grows: training env steps summed over every training, evaluation steps from generation 1 on
+    _check_budget(cfg, summary["reports"])
+    assert [len(t.history) for r in summary["reports"] for t in r.training] == [1, 1, 1, 3, 3]
+    assert r0.budget["eval_env_steps"] == 0 < r1.budget["eval_env_steps"] < r2.budget["eval_env_steps"]
+    assert summary["budget"] == r2.budget
+    # the final population table: eta and rho of the last generation, and the partner slots drawn from it
+    table = summary["population"]
+    assert list(table["member"]) == [p0, p1, p2, g1, g2]
+    assert {"member", "eta", "rho", "drawn", "zoo1_SUC", "zoo1_COL", "zoo1_AST", "zoo1_REW"} <= set(table.columns)
+    rows = table.set_index("member")
+    assert [rows.loc[m, "rho"] for m in (p0, p1, p2)] == pytest.approx([graph2["rho"][m] for m in (p0, p1, p2)])
+    assert rows.loc[[g1, g2], "rho"].isna().all()  # N_t and the new learner are never partners
+    assert [rows.loc[m, "drawn"] for m in (p0, p1, p2, g1, g2)] == [
+        *(graph2["drawn_members"].get(m, 0) for m in (p0, p1, p2)),
+        0,
+        0,
+    ]
 
     client = mlflow.MlflowClient(uri)
     parent = client.get_run(summary["mlflow_run_id"])
@@ -89,7 +154,7 @@ def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
         if r.info.run_name.startswith("learner-")
     }
     assert learners == {
-        f"learner-{g0}": "generation-0",
+        **{f"learner-{m}": "generation-0" for m in (p0, p1, p2)},
         f"learner-{g1}": "generation-1",
         f"learner-{g2}": "generation-2",
     }
@@ -97,12 +162,51 @@ def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
     assert "train/policy_loss" in learner.data.metrics
     assert [a.path for a in client.list_artifacts(learner.info.run_id, "checkpoints")] == [f"checkpoints/{g2}.pt"]
     gen2 = next(r for r in children if r.info.run_name == "generation-2")
-    assert "pop/rho_entropy" in gen2.data.metrics
+    assert gen2.data.metrics["pop/rho_entropy"] == pytest.approx(r2.metrics["pop/rho_entropy"])
+    assert gen2.data.metrics["budget/env_steps"] == r2.budget["env_steps"]
+    assert gen2.data.metrics["budget/eval_env_steps"] == r2.budget["eval_env_steps"]
     assert {a.path for a in client.list_artifacts(gen2.info.run_id)} >= {"hypergraph.json", "hypergraph.png"}
+    gen0 = next(r for r in children if r.info.run_name == "generation-0")
+    assert "pi0.json" in {a.path for a in client.list_artifacts(gen0.info.run_id)}
     top = {a.path for a in client.list_artifacts(parent.info.run_id)}
     assert {"config.json", "population.csv", "best_member_header.json"} <= top
     version = client.get_model_version_by_alias("atdrone-hola_t", "champion")
     assert version.tags["member"] == summary["best"]
+
+
+def test_hola_trains_on_partner_profiles_drawn_from_rho(local_ray, tmp_path):
+    """The profiles the rollout drew for the learner's episodes follow hypergraph.json's profile distribution."""
+    from scipy.stats import chisquare
+
+    from atdrone.registry import registry_actor
+    from atdrone.service.coordinator import Coordinator
+    from atdrone.service.experiment import registry_name
+
+    # Pi_0: 4 self-play seeds, so Pi_1 minus N_1 has 3 members and 3 profiles; one short update on many
+    # environments starts many episodes (every environment draws a profile at reset)
+    ppo = {**TINY["ppo"], "num_envs": 256, "rollout_steps": 8, "minibatch_size": 1024}
+    hola = {"pi0_seeds": 4, "pi0_levels": 1, "min_episodes": 4, "max_episodes": 8}
+    cfg = _cfg(tmp_path, "draws_t", algorithm="hola", hola=hola, ppo=ppo)
+    registry = registry_actor(tmp_path / "draws.db", name=registry_name(cfg.name))
+    coordinator = Coordinator.remote(cfg, ALGORITHMS["hola"], str(tmp_path / "draws_t"), None, registry)
+    first = ray.get(coordinator.run_generation.remote(), timeout=240)
+    report = ray.get(coordinator.run_generation.remote(), timeout=240)
+    ray.kill(coordinator)
+    seed0, seed1, seed2, seed3 = first.population
+    assert [t.parent for t in first.training] == [None] * 4
+    assert first.learners == [seed0]  # N_0: the first seed's final snapshot
+    graph = _check_hola_generation(report, seed0, [seed1, seed2, seed3])
+    (trained,) = report.training
+    assert all(seed0 not in profile.split("|") for profile in trained.drawn)  # never a member of N_t
+    names = list(graph["profiles"])
+    observed = np.array([trained.drawn.get(name, 0) for name in names])
+    expected = np.array([graph["profiles"][name] for name in names]) * observed.sum()
+    assert observed.sum() == sum(trained.drawn.values()) >= 250 and expected.min() >= 5
+    # chi-square goodness of fit (2 degrees of freedom) at this fixed seed: the draws follow the profiles...
+    assert chisquare(observed, expected).pvalue > 0.001
+    # ...which rho made far from uniform here (eta 0.75, 0.5, 0): uniform draws would be told apart
+    assert max(graph["rho"].values()) > 2 * min(graph["rho"].values())
+    assert chisquare(observed).pvalue < 0.001
 
 
 def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp_path):
@@ -128,7 +232,8 @@ def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp
 
 def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    cfg = _cfg(tmp_path, "resume_t", algorithm="hola", generations=3, hola={"population_size": 3})
+    # the "w/o g" ablation: HOLA's generations with partners drawn uniformly from Pi minus N_t
+    cfg = _cfg(tmp_path, "resume_t", algorithm="hola_no_g", generations=3, updates_per_generation=3, hola_no_g=HOLA)
     first = run_experiment(cfg, tracking_uri=uri, progress=False, stop_after=2)
     assert first["stopped"]
     run_dir = tmp_path / "resume_t"
@@ -137,20 +242,32 @@ def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path
     before = reg.members(run="resume_t").set_index("id")
     assert saved["coordinator"]["generation"] == 2
     assert saved["coordinator"]["algorithm"]["population"] == list(before.index)
+    assert saved["coordinator"]["algorithm"]["learners"] == [before.index[-1]]
+    assert saved["coordinator"]["budget"] == first["reports"][-1].budget
     with pytest.raises(FileExistsError):
         run_experiment(cfg, tracking_uri=uri, progress=False)
     second = run_experiment(cfg, tracking_uri=uri, resume=True, progress=False)
     assert [r.generation for r in second["reports"]] == [2]
     after = reg.members(run="resume_t").set_index("id")
     # what was saved is untouched: same members, same checkpoints byte for byte
-    assert list(after.index[:2]) == list(before.index)
+    assert len(before) == 4 and list(after.index[:4]) == list(before.index)
     for member in before.index:
         assert after.loc[member, "sha256"] == before.loc[member, "sha256"]
         assert read_header(after.loc[member, "checkpoint"])["sha256"] == before.loc[member, "sha256"]
     # the resumed generation warm-started from the saved learner and continued its lineage
-    (g2,) = second["reports"][0].learners
+    (report,) = second["reports"]
+    (g2,) = report.learners
     assert after.loc[g2, "parents"] == [before.index[-1]]
     assert second["mlflow_run_id"] == first["mlflow_run_id"]
+    # w/o g: rho is uniform over Pi minus N_t, so every profile is equally likely
+    p0, p1, p2, g1 = before.index
+    graph = _check_hola_generation(report, g1, [p0, p1, p2])
+    assert graph["rho"] == pytest.approx(dict.fromkeys([p0, p1, p2], 1 / 3))
+    assert list(graph["profiles"].values()) == pytest.approx([1 / 3] * 3)
+    # the budget continued from the saved one
+    _check_budget(cfg, [*first["reports"], report])
+    assert second["budget"] == report.budget
+    assert {"rho", "drawn"} <= set(second["population"].columns)
 
 
 def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_path):
@@ -240,7 +357,7 @@ RESUME = {
     "algorithm": "hola",
     "generations": 3,
     "updates_per_generation": 4,
-    "hola": {"population_size": 3},
+    "hola": {"pi0_seeds": 1, "pi0_levels": 3, "min_episodes": 4, "max_episodes": 8},
     "final_zoo": "zoo1",
     "ppo": {**TINY["ppo"], "rollout_steps": 32},
 }
