@@ -243,6 +243,7 @@ def test_jobs_submitted_to_a_ray_head_succeed(ray_head: str, tmp_path: Path) -> 
     assert "population of jobtest (hola, 4p2e1o)" in logs[train] and "jobs/train.py: done" in logs[train]
     run_dir = tmp_path / "runs" / "jobtest"
     population = pd.read_csv(run_dir / "population.csv")
-    assert len(population) == 1 and "zoo1_SUC" in population.columns
+    # one generation: hola_quick's Pi_0, two self-play seeds at two skill levels
+    assert list(population["member"]) == [f"hola-g0-{i}" for i in range(4)] and "zoo1_SUC" in population.columns
     assert (run_dir / "registry.db").is_file() and (tmp_path / "mlflow.db").is_file()
     assert json.loads((run_dir / "service_state.json").read_text())["coordinator"]["generation"] == 1
