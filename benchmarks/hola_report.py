@@ -258,7 +258,8 @@ def report(args: argparse.Namespace) -> None:
     lines = [f"# HOLA-Drone V2 vs SP: {', '.join(args.tasks)}", ""]
     lines.append(
         f"Evaluation: {args.episodes} episodes per run and zoo; mean +- std over seeds "
-        f"(n: seeds). Paired differences: algorithm - SP of the same seed, "
+        f"(n: seeds). Paired differences: algorithm - SP of the same seed "
+        "(sp: equal env steps; sp@samples: SP's generation with the learner samples closest to HOLA's), "
         f"mean +- standard error over seeds."
     )
     doc: dict[str, Any] = {"episodes": args.episodes, "cells": [], "paired": [], "budget": budget_rows}
@@ -284,26 +285,34 @@ def report(args: argparse.Namespace) -> None:
             lines.append(
                 f"| {algorithm} | {len(g)} | " + " | ".join(f"{v[0]:.1f} +- {v[1]:.1f}" for v in stats.values()) + " |"
             )
-        sp = cell[cell.algorithm == "sp"].set_index("seed")
-        for algorithm, g in cell[cell.algorithm != "sp"].groupby("algorithm", sort=False):
-            paired = g.set_index("seed")[list(METRICS)].sub(sp[list(METRICS)]).dropna(how="all")
-            if len(paired) < 2:
-                continue
-            diffs = {m: (float(paired[m].mean()), float(paired[m].std(ddof=1) / np.sqrt(len(paired)))) for m in METRICS}
-            doc["paired"].append(
-                {
-                    "task": task,
-                    "zoo": zoo,
-                    "algorithm": algorithm,
-                    "n": len(paired),
-                    **{m: {"diff": d, "se": s} for m, (d, s) in diffs.items()},
+        # SP at equal env steps and at equal learner samples; HOLA against its ablation
+        for reference in ("sp", "sp@samples", "hola_no_g"):
+            ref = cell[cell.algorithm == reference].set_index("seed")
+            others = cell[~cell.algorithm.isin(["sp", "sp@samples", "hola_no_g"])]
+            if reference == "hola_no_g":
+                others = others[others.algorithm.str.startswith("hola")]
+            for algorithm, g in others.groupby("algorithm", sort=False):
+                paired = g.set_index("seed")[list(METRICS)].sub(ref[list(METRICS)]).dropna(how="all")
+                if len(paired) < 2:
+                    continue
+                diffs = {
+                    m: (float(paired[m].mean()), float(paired[m].std(ddof=1) / np.sqrt(len(paired)))) for m in METRICS
                 }
-            )
-            lines.append(
-                f"| {algorithm} - sp | {len(paired)} | "
-                + " | ".join(f"{d:+.1f} +- {s:.1f}" for d, s in diffs.values())
-                + " |"
-            )
+                doc["paired"].append(
+                    {
+                        "task": task,
+                        "zoo": zoo,
+                        "algorithm": algorithm,
+                        "reference": reference,
+                        "n": len(paired),
+                        **{m: {"diff": d, "se": s} for m, (d, s) in diffs.items()},
+                    }
+                )
+                lines.append(
+                    f"| {algorithm} - {reference} | {len(paired)} | "
+                    + " | ".join(f"{d:+.1f} +- {s:.1f}" for d, s in diffs.values())
+                    + " |"
+                )
     if budget_rows:
         lines += [
             "",
