@@ -424,6 +424,9 @@ def main() -> None:
     if "train" in args.phases:
         train(args)
     if "evaluate" in args.phases:
+        import torch
+
+        torch.set_num_threads(1)  # beside a training run on the same cores
         evaluate_runs(args)
         crossplay(args)
     if "report" in args.phases:
