@@ -288,7 +288,7 @@ def report(args: argparse.Namespace) -> None:
         # SP at equal env steps and at equal learner samples; HOLA against its ablation
         for reference in ("sp", "sp@samples", "hola_no_g"):
             ref = cell[cell.algorithm == reference].set_index("seed")
-            others = cell[~cell.algorithm.isin(["sp", "sp@samples", "hola_no_g"])]
+            others = cell[~cell.algorithm.isin(["sp", "sp@samples", reference])]
             if reference == "hola_no_g":
                 others = others[others.algorithm.str.startswith("hola")]
             for algorithm, g in others.groupby("algorithm", sort=False):
