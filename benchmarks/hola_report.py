@@ -34,10 +34,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from atdrone.learn.ppo import PPOConfig
+from atdrone.teams.evaluation import METRICS
+
 ALGORITHMS = ("hola", "hola_no_g", "sp", "pbt")
-METRICS = ("SUC", "COL", "AST", "REW")
 ZOOS = ("zoo1", "zoo2", "zoo3")
-UPDATE_ENV_STEPS = 64 * 128  # ppo.num_envs x ppo.rollout_steps of the default preset
+UPDATE_ENV_STEPS = PPOConfig().num_envs * PPOConfig().rollout_steps  # of the default preset: 64 x 128
 
 
 def plan(algorithm: str, env_steps: int, updates: int, hola: dict[str, Any]) -> dict[str, Any]:

@@ -48,7 +48,7 @@ from typing import Any
 import atdrone.population.hypergraph as hg
 from atdrone.config import ConfigError
 from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Oracle, Team, TrainingRecord, record
-from atdrone.teams.partners import profiles
+from atdrone.teams.partners import profiles, slot_counts
 
 WEIGHTS = {"return": "REW", "SUC": "SUC"}  # weight name -> match metric
 STARTS = ("last", "scratch")
@@ -229,10 +229,7 @@ class Hola(Algorithm):
         for t in training:
             for profile, n in t.drawn.items():
                 drawn_profiles[profile] = drawn_profiles.get(profile, 0) + n
-        self.drawn = {}
-        for profile, n in drawn_profiles.items():
-            for m in profile.split("|"):
-                self.drawn[m] = self.drawn.get(m, 0) + n
+        self.drawn = slot_counts(drawn_profiles)
         nodes = len({m for e in played for m in e})
         resolution = {
             w: {"contested_nodes": len(hg.contested_preferences(s, cfg.z)), "nodes": nodes} for w, s in stats.items()

@@ -23,6 +23,7 @@ import pandas as pd
 from atdrone.fileio import atomic_write_bytes
 from atdrone.population.base import GenerationReport
 from atdrone.service.experiment import ExperimentConfig, registry_name
+from atdrone.teams.partners import slot_counts
 
 log = logging.getLogger(__name__)
 STATE_FILE = "service_state.json"
@@ -176,11 +177,7 @@ def _log_generation(
             metrics["eval/SUC"] = float(np.mean([m.metrics["SUC"] for m in report.matches]))
             metrics["eval/COL"] = float(np.mean([m.metrics["COL"] for m in report.matches]))
         for t in report.training:  # partner slots each member filled in the learner's training episodes
-            slots: dict[str, int] = {}
-            for profile, n in t.drawn.items():
-                for partner in profile.split("|"):
-                    slots[partner] = slots.get(partner, 0) + n
-            metrics.update({f"pop/drawn/{t.member}/{m}": n for m, n in slots.items()})
+            metrics.update({f"pop/drawn/{t.member}/{m}": n for m, n in slot_counts(t.drawn).items()})
         tracker.log_metrics(metrics, step=g)
         for name, document in report.documents.items():
             _write_json(gen_dir / name, document)

@@ -77,7 +77,13 @@ class Match:
         if self.num_unctrl:
             drawn = self.sampler(self.rng, n)
             self.members[envs] = drawn
-            self.drawn.update("|".join(sorted(row)) for row in self._names[drawn])
+            self._count(drawn)
+
+    def _count(self, drawn: np.ndarray) -> None:
+        """Add the drawn profiles (n, num_unctrl) to ``drawn``: one Python step per distinct profile, not per env."""
+        profiles, counts = np.unique(np.sort(drawn, axis=1), axis=0, return_counts=True)
+        for profile, n in zip(profiles, counts, strict=True):
+            self.drawn["|".join(sorted(self._names[profile]))] += int(n)
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset every environment and draw new teams; learner observations (B, num_ctrl, D)."""

@@ -98,6 +98,15 @@ def profiles(dist: Mapping[tuple[str, ...], float]) -> Profiles:
     return Profiles(members, tuple(tuple(index[m] for m in t) for t in dist), tuple(float(p) for p in dist.values()))
 
 
+def slot_counts(drawn: Mapping[str, int]) -> dict[str, int]:
+    """Partner slots each member filled, from drawn profile counts ({"a|b": episodes})."""
+    slots: dict[str, int] = {}
+    for profile, n in drawn.items():
+        for member in profile.split("|"):
+            slots[member] = slots.get(member, 0) + n
+    return dict(sorted(slots.items()))
+
+
 def describe(dist: PartnerDistribution | None) -> dict[str, Any]:
     """A JSON summary of a distribution (its class, members and, when weighted, probabilities)."""
     if dist is None:
