@@ -135,6 +135,108 @@ def spawn(cfg: TaskConfig, rng: np.random.Generator, n: int, max_tries: int = 10
     return pos, np.full((n, pl.num_p + pl.num_e), np.pi / 2)
 
 
+def evader_distances(pos: np.ndarray, num_p: int) -> np.ndarray:
+    """Nearest-pursuer distance of each evader, (B, E), from positions (B, N, 2) pursuers first."""
+    dx = pos[:, num_p:, None, 0] - pos[:, None, :num_p, 0]
+    dy = pos[:, num_p:, None, 1] - pos[:, None, :num_p, 1]
+    return np.sqrt(dx * dx + dy * dy).min(-1)
+
+
+@dataclass(frozen=True)
+class EvaderMove:
+    """The evaders after one step: positions (B, E, 2), headings (B, E), wander state (B, E)."""
+
+    pos: np.ndarray
+    heading: np.ndarray
+    wander_heading: np.ndarray
+    wander_left: np.ndarray
+
+
+def evader_step(
+    pos_e: np.ndarray,
+    head_e: np.ndarray,
+    pos_p: np.ndarray,
+    captured: np.ndarray,
+    wander_heading: np.ndarray,
+    wander_left: np.ndarray,
+    cfg: TaskConfig,
+    escape: EscapeParams,
+    rng: np.random.Generator,
+    geometry: Geometry | None = None,
+) -> EvaderMove:
+    """One step of the escape policy (SPEC section 3) for evaders at ``pos_e`` fleeing pursuers at ``pos_p``.
+
+    Calm evaders wander, holding a heading drawn from ``rng`` for 10-15 steps; the
+    others flee. Captured evaders stay put. The simulator and the deploy loop (virtual
+    evaders, or setpoints for evader drones) both call this.
+    """
+    geo = Geometry.from_config(cfg) if geometry is None else geometry
+    active = ~captured
+    flee, calm = escape_directions(
+        pos_e, head_e, pos_p, active, geo, cfg.players.reception_range, cfg.task.capture_range, escape
+    )
+    lo, hi = escape.wander_steps
+    redraw = calm & (wander_left <= 0)
+    veer = rng.uniform(-escape.wander_turn, escape.wander_turn, size=head_e.shape)
+    span = rng.integers(lo, hi + 1, size=head_e.shape)
+    new_wander = np.where(redraw, head_e + veer, wander_heading)
+    left = np.where(calm, np.where(redraw, span, wander_left) - 1, 0)
+    heading = np.where(active, np.where(calm, new_wander, flee), head_e)
+    pos = move_evaders(pos_e, heading, cfg.players.velocity_e * cfg.dt, active, geo, escape)
+    return EvaderMove(pos=pos, heading=heading, wander_heading=new_wander, wander_left=left)
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """Capture and collision at some positions (B environments; SPEC section 4).
+
+    captured_now (B, E) caught by this judgement; captured (B, E) after it;
+    evader_distance (B, E) nearest-pursuer distance; pair_distance and hit_pairs (B, pairs)
+    in ``pairs`` order; hit_obstacle (B, P) index into ``geometry.names`` (-1 none);
+    collided (B, P) pursuers in a collision; obstacles: the pursuers' signed distances
+    and normals (for the observation).
+    """
+
+    captured_now: np.ndarray
+    captured: np.ndarray
+    evader_distance: np.ndarray
+    pair_distance: np.ndarray
+    hit_pairs: np.ndarray
+    hit_obstacle: np.ndarray
+    collided: np.ndarray
+    obstacles: tuple[np.ndarray, np.ndarray]
+
+
+def judge(
+    pos: np.ndarray, captured: np.ndarray, cfg: TaskConfig, geometry: Geometry, pairs: np.ndarray | None = None
+) -> Judgement:
+    """Which evaders are caught and which pursuers collide at positions ``pos`` (B, N, 2), pursuers first."""
+    P, task = cfg.players.num_p, cfg.task
+    if pairs is None:
+        pairs = np.stack(np.triu_indices(P, 1), 1)
+    dist_pe = evader_distances(pos, P)
+    newly = ~captured & (dist_pe < task.capture_range)
+    pos_p = pos[:, :P]
+    i, j = pairs.T
+    pair_d = np.sqrt((pos_p[:, i, 0] - pos_p[:, j, 0]) ** 2 + (pos_p[:, i, 1] - pos_p[:, j, 1]) ** 2)
+    pair_hit = pair_d < task.collision_distance
+    obstacles = signed_distances(pos_p, geometry)
+    nearest = obstacles[0].argmin(-1)
+    hit = np.take_along_axis(obstacles[0], nearest[..., None], -1)[..., 0] < task.safe_radius
+    member = (pairs[:, :, None] == np.arange(P)).any(1).astype(np.int64)  # (pairs, P) incidence
+    in_pair = (pair_hit.astype(np.int64) @ member) > 0
+    return Judgement(
+        captured_now=newly,
+        captured=captured | newly,
+        evader_distance=dist_pe,
+        pair_distance=pair_d,
+        hit_pairs=pair_hit,
+        hit_obstacle=np.where(hit, nearest, -1),
+        collided=hit | in_pair,
+        obstacles=obstacles,
+    )
+
+
 class BatchedPursuit:
     """B AT-Drone pursuit environments stepped together (see the module docstring)."""
 
@@ -151,9 +253,6 @@ class BatchedPursuit:
         self.escape = EscapeParams()
         self.rng = np.random.default_rng(seed)
         self.pairs = np.stack(np.triu_indices(self.num_p, 1), 1)  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
-        # (pairs, P) incidence: which two pursuers make up each pair.
-        self._pair_member = np.zeros((len(self.pairs), self.num_p), dtype=np.int64)
-        np.put_along_axis(self._pair_member, self.pairs, 1, axis=1)
         self.state = self._fresh_state(self.num_envs)
         self._obs: np.ndarray | None = None
         # the whole batch just before the last auto-reset (to show how episodes ended)
@@ -179,10 +278,7 @@ class BatchedPursuit:
 
     def _evader_distances(self, pos: np.ndarray) -> np.ndarray:
         """Nearest-pursuer distance of each evader, (B, E)."""
-        P = self.num_p
-        dx = pos[:, P:, None, 0] - pos[:, None, :P, 0]
-        dy = pos[:, P:, None, 1] - pos[:, None, :P, 1]
-        return np.sqrt(dx * dx + dy * dy).min(-1)
+        return evader_distances(pos, self.num_p)
 
     @property
     def pursuer_pos(self) -> np.ndarray:
@@ -224,7 +320,6 @@ class BatchedPursuit:
         if actions.shape != (self.num_envs, self.num_p):
             raise ValueError(f"actions must have shape {(self.num_envs, self.num_p)}, got {actions.shape}")
         cfg, s, P = self.cfg, self.state, self.num_p
-        dt = cfg.dt
         task, rw = cfg.task, cfg.task.reward
 
         # Pursuers: turn at most 45 degrees, then move at constant speed.
@@ -232,36 +327,33 @@ class BatchedPursuit:
         pos_p = advance(s.pos[:, :P], head_p, self.arena.step, self.geometry.width, self.geometry.height)
 
         # Evaders: escape policy, wandering when calm.
-        active = ~s.captured
-        pos_e, head_e = s.pos[:, P:], s.heading[:, P:]
-        flee, calm = escape_directions(
-            pos_e, head_e, pos_p, active, self.geometry, cfg.players.reception_range, task.capture_range, self.escape
+        ev = evader_step(
+            s.pos[:, P:],
+            s.heading[:, P:],
+            pos_p,
+            s.captured,
+            s.wander_heading,
+            s.wander_left,
+            self.cfg,
+            self.escape,
+            self.rng,
+            self.geometry,
         )
-        lo, hi = self.escape.wander_steps
-        redraw = calm & (s.wander_left <= 0)
-        veer = self.rng.uniform(-self.escape.wander_turn, self.escape.wander_turn, size=head_e.shape)
-        span = self.rng.integers(lo, hi + 1, size=head_e.shape)
-        wander_heading = np.where(redraw, head_e + veer, s.wander_heading)
-        wander_left = np.where(calm, np.where(redraw, span, s.wander_left) - 1, 0)
-        new_head_e = np.where(active, np.where(calm, wander_heading, flee), head_e)
-        pos_e = move_evaders(pos_e, new_head_e, cfg.players.velocity_e * dt, active, self.geometry, self.escape)
-
-        pos = np.concatenate([pos_p, pos_e], 1)
-        heading = np.concatenate([head_p, new_head_e], 1)
+        active = ~s.captured
+        pos = np.concatenate([pos_p, ev.pos], 1)
+        heading = np.concatenate([head_p, ev.heading], 1)
+        wander_heading, wander_left = ev.wander_heading, ev.wander_left
 
         # Capture and collision.
-        dist_pe = self._evader_distances(pos)  # (B, E)
-        newly = active & (dist_pe < task.capture_range)
-        captured = s.captured | newly
-        px, py = pos_p[..., 0], pos_p[..., 1]
-        i, j = self.pairs.T
-        pair_d = np.sqrt((px[:, i] - px[:, j]) ** 2 + (py[:, i] - py[:, j]) ** 2)  # (B, pairs)
-        pair_hit = pair_d < task.collision_distance
-        p_obst = signed_distances(pos_p, self.geometry)
-        nearest = p_obst[0].argmin(-1)  # (B, P) index into geometry.names
-        collided = np.take_along_axis(p_obst[0], nearest[..., None], -1)[..., 0] < task.safe_radius  # (B, P)
-        hit_obstacle = np.where(collided, nearest, -1)
-        collided = collided | ((pair_hit.astype(np.int64) @ self._pair_member) > 0)
+        judged = judge(pos, s.captured, self.cfg, self.geometry, self.pairs)
+        newly, captured, dist_pe = judged.captured_now, judged.captured, judged.evader_distance
+        pair_d, pair_hit, hit_obstacle, collided = (
+            judged.pair_distance,
+            judged.hit_pairs,
+            judged.hit_obstacle,
+            judged.collided,
+        )
+        p_obst = judged.obstacles
         any_collision = collided.any(-1)
 
         # Shared reward.

@@ -1,0 +1,22 @@
+"""Flying a population member on Crazyflie drones: the deploy layer (beside the service).
+
+Modules, each importing only from those above it and from the layers below deploy:
+
+- ``clock``: real time, or a scaled clock that runs the simulated fleet faster than real time.
+- ``shield``: the safety shield, pure functions on arrays (geofence, separation, clamps,
+  stale poses, stalls, link loss, battery, stop requests).
+- ``crtp``: the CRTP packet formats the bridge and the simulated fleet both speak.
+- ``simfleet``: simulated Crazyflies answering cflib on loopback UDP ports, with dynamics,
+  the firmware's watchdogs and injectable faults.
+- ``mocap``: motion-capture sources (the ``motioncapture`` package, or a simulated one
+  reading the fleet) read in their own thread, and the mocap-to-arena frame transform.
+- ``bridge``: the bridge protocol and its cflib implementation (Swarm + CachedCfFactory).
+- ``config``: the deploy document (configs/deploy/*.json), validated.
+- ``flightlog``: per tick and drone rows, Parquet, plots, the MLflow deploy run, the summary.
+- ``preflight``: the dry run's checks (tracking, spawn regions, batteries, the frame,
+  the observation agreement with ``BatchedPursuit``, the command path).
+- ``loop``: the 10 Hz loop and the episode sequence; ``job``: the whole deploy job.
+
+cflib and motioncapture are the optional extra ``atdrone[deploy]``: nothing outside this
+package imports them, and this package imports them only where it talks to hardware.
+"""
