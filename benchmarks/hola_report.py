@@ -287,12 +287,16 @@ def report(args: argparse.Namespace) -> None:
             lines.append(
                 f"| {algorithm} | {len(g)} | " + " | ".join(f"{v[0]:.1f} +- {v[1]:.1f}" for v in stats.values()) + " |"
             )
-        # SP at equal env steps and at equal learner samples; HOLA against its ablation
-        for reference in ("sp", "sp@samples", "hola_no_g"):
+        # SP at equal env steps and at equal learner samples; HOLA against its ablation; a variant
+        # with its own SP runs (e.g. a doubled budget, "sp+2M") against those
+        tagged_sp = sorted(a for a in cell.algorithm.unique() if a.startswith("sp+"))
+        for reference in ("sp", "sp@samples", "hola_no_g", *tagged_sp):
             ref = cell[cell.algorithm == reference].set_index("seed")
             others = cell[~cell.algorithm.isin(["sp", "sp@samples", reference])]
             if reference == "hola_no_g":
                 others = others[others.algorithm.str.startswith("hola")]
+            elif reference in tagged_sp:
+                others = others[others.algorithm.str.endswith(reference[2:])]
             for algorithm, g in others.groupby("algorithm", sort=False):
                 paired = g.set_index("seed")[list(METRICS)].sub(ref[list(METRICS)]).dropna(how="all")
                 if len(paired) < 2:
