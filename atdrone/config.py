@@ -218,7 +218,10 @@ def _parse(tp: Any, value: Any, path: str) -> Any:
             raise ConfigError(path, f"must be one of {list(typing.get_args(tp))}, got {_describe(value)}")
         return value
     if origin in (typing.Union, types.UnionType):
-        return _parse_tagged(typing.get_args(tp), value, path)
+        options = tuple(a for a in typing.get_args(tp) if a is not type(None))
+        if len(options) == 1 and len(typing.get_args(tp)) == 2:  # X | None: null means none
+            return None if value is None else _parse(options[0], value, path)
+        return _parse_tagged(options, value, path)
     if origin is dict:
         _, val_tp = typing.get_args(tp)
         if not isinstance(value, Mapping):

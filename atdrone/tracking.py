@@ -116,3 +116,32 @@ class Tracker:
         if alias:
             client.set_registered_model_alias(name, alias, version)
         return version
+
+
+def model_checkpoint(uri: str, tracking: str | None = None) -> str:
+    """The checkpoint file behind a registered model ``models:/NAME@ALIAS`` (or ``models:/NAME/VERSION``).
+
+    Read from the model version's ``checkpoint`` tag (set when the driver registers a
+    champion): the project's own checkpoint format is loaded, never the pickled MLflow
+    model. KeyError naming the model when it, its alias or its tag is missing.
+    """
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    import mlflow
+
+    if not uri.startswith("models:/"):
+        raise KeyError(f"not a registered model URI (models:/NAME@ALIAS): {uri!r}")
+    ref = uri.removeprefix("models:/")
+    client = mlflow.MlflowClient(tracking_uri=tracking_uri(tracking))
+    try:
+        if "@" in ref:
+            name, alias = ref.split("@", 1)
+            version = client.get_model_version_by_alias(name, alias)
+        else:
+            name, number = ref.rsplit("/", 1)
+            version = client.get_model_version(name, number)
+    except Exception as exc:  # mlflow raises its own RestException / MlflowException for unknown names
+        raise KeyError(f"no registered model {uri!r} in {tracking_uri(tracking)}: {exc}") from None
+    path = (version.tags or {}).get("checkpoint")
+    if not path:
+        raise KeyError(f"registered model {uri!r} has no 'checkpoint' tag (registered before deploy support?)")
+    return str(path)

@@ -49,7 +49,7 @@ class ScaledClock:
         return seconds / self.rate
 
 
-def RealClock() -> ScaledClock:  # noqa: N802 - reads as a type at call sites
+def RealClock() -> ScaledClock:
     """The wall clock (rate 1)."""
     return ScaledClock(1.0)
 

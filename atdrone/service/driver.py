@@ -238,7 +238,9 @@ def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> 
 
     path = run_dir / "members" / f"{best}.pt"
     model, header = load_checkpoint(path)
-    tracker.log_model(model, name=f"atdrone-{cfg.name}", alias="champion", tags={"member": best})
+    tracker.log_model(
+        model, name=f"atdrone-{cfg.name}", alias="champion", tags={"member": best, "checkpoint": str(path.resolve())}
+    )
     if cfg.gif:
         from atdrone.envs.render import save_gif
         from atdrone.policies.neural import NeuralPolicy

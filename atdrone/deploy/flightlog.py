@@ -1,0 +1,496 @@
+"""The flight log: one row per tick and drone, one per episode, and what is made of them.
+
+:class:`FlightLog` collects rows while the loop flies; :meth:`FlightLog.write` puts a log
+directory together, every file written atomically (a temp name, then a rename):
+
+- ``flight.parquet``: per tick and drone: ``t`` (clock seconds since the flight started),
+  ``episode``, ``step`` (-1 while the high-level commander flies), ``drone``, ``role``,
+  ``x, y, z, yaw`` (measured, arena frame; NaN unknown), ``setpoint_x, setpoint_y,
+  setpoint_z``, ``state`` (:data:`FLIGHT_STATES`), ``events`` (comma-joined shield rules
+  and ``fault:KIND`` notes, "" for none), ``battery`` (V) and ``latency_STAGE`` (seconds;
+  NaN on ticks without that stage).
+- ``episodes.parquet``: ``episode, outcome, steps, captured, reward, virtual_evaders``.
+- ``meta.json``: the config summary given to the log, the tick overruns and the arena
+  geometry (walls and obstacles), so the directory alone is enough for :func:`summarize`.
+- ``summary.json``: :func:`summarize` of the directory (non-finite numbers as null).
+- ``trajectories.png``: the arena, each drone's path, setpoints faint, shield events marked.
+- ``flight.gif``: a short animation (at most :data:`GIF_FRAMES` frames).
+
+:func:`log_to_mlflow` records the directory as an MLflow run tagged ``kind=deploy``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import threading
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from atdrone.fileio import atomic_write, atomic_write_text
+
+FLIGHT_STATES = ("idle", "taking_off", "flying", "landing", "landed", "stopped", "lost", "virtual")
+AIRBORNE = ("taking_off", "flying", "landing")
+OUTCOMES = ("captured", "collision", "timeout", "shield", "aborted")
+LATENCY_STAGES = ("mocap_age", "observe", "policy", "shield", "send", "tick")  # the usual order; others follow
+PERCENTILES = (50, 95, 99)
+GIF_FRAMES = 60
+EXPERIMENT = "atdrone-deploy"
+FILES = ("flight.parquet", "episodes.parquet", "meta.json", "summary.json", "trajectories.png", "flight.gif")
+ROLE_COLORS = {"learner": "#1f5fbf", "partner": "#2a9d3a", "evader": "#d62728"}
+
+_COLUMNS = (
+    "t",
+    "episode",
+    "step",
+    "drone",
+    "role",
+    "x",
+    "y",
+    "z",
+    "yaw",
+    "setpoint_x",
+    "setpoint_y",
+    "setpoint_z",
+    "state",
+    "events",
+    "battery",
+)
+_EPISODE_COLUMNS = ("episode", "outcome", "steps", "captured", "reward", "virtual_evaders")
+
+
+def _geometry(meta: Mapping[str, Any]) -> dict[str, Any]:
+    """The arena and obstacles to draw: ``meta["geometry"]``, else the task's, else the bare arena."""
+    if "geometry" in meta:
+        return dict(meta["geometry"])
+    width, height = (float(v) for v in meta.get("arena", (math.nan, math.nan)))
+    geo = {"width": width, "height": height, "boxes": [], "discs": []}
+    try:
+        from atdrone.config import load_task
+        from atdrone.envs.geometry import Geometry
+
+        g = Geometry.from_config(load_task(str(meta["task"])))
+    except (KeyError, ValueError, OSError):  # no task, or a task file no longer there: walls only
+        return geo
+    if math.isnan(width):
+        geo.update(width=g.width, height=g.height)
+    geo["boxes"] = np.c_[g.box_center, g.box_half].tolist()  # cx, cy, half width, half height
+    geo["discs"] = np.c_[g.disc_center, g.disc_radius].tolist()  # cx, cy, radius
+    return geo
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON data: numpy scalars and arrays unwrapped, non-finite floats as None."""
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, str | int | float | bool) or value is None:
+        return value
+    return str(value)
+
+
+def _dumps(data: Any) -> str:
+    return json.dumps(_jsonable(data), indent=2, allow_nan=False) + "\n"
+
+
+class FlightLog:
+    """Rows of one flight, collected from the loop's thread (see the module docstring).
+
+    meta: the config summary: ``name, task, member, backend, evaders, dt, arena [w, h],
+    drones {name: role}`` and anything else worth keeping; obstacles come from the task
+    (or pass ``geometry`` as in meta.json).
+    """
+
+    def __init__(self, meta: Mapping[str, Any]) -> None:
+        self.meta = dict(meta)
+        self.geometry = _geometry(self.meta)
+        self.overruns = 0
+        self._rows: list[tuple[Any, ...]] = []
+        self._latency: list[Mapping[str, float]] = []
+        self._episodes: list[tuple[Any, ...]] = []
+        self._lock = threading.Lock()
+
+    def tick(
+        self,
+        t: float,
+        episode: int,
+        step: int,
+        drone: str,
+        role: str,
+        pos: np.ndarray,
+        yaw: float,
+        setpoint: np.ndarray,
+        state: str,
+        events: Sequence[str],
+        battery: float,
+        latency: Mapping[str, float],
+    ) -> None:
+        """One row: drone ``drone`` at tick time ``t``; ``latency`` maps stage -> seconds."""
+        if state not in FLIGHT_STATES:
+            raise ValueError(f"unknown flight state {state!r} (known: {', '.join(FLIGHT_STATES)})")
+        x, y, z = (float(v) for v in np.asarray(pos, dtype=np.float64).reshape(3))
+        sx, sy, sz = (float(v) for v in np.asarray(setpoint, dtype=np.float64).reshape(3))
+        row = (float(t), int(episode), int(step), drone, role, x, y, z, float(yaw), sx, sy, sz, state)
+        with self._lock:
+            self._rows.append((*row, ",".join(events), float(battery)))
+            self._latency.append(dict(latency))
+
+    def episode(
+        self, episode: int, outcome: str, steps: int, captured: int, reward: float, virtual_evaders: bool
+    ) -> None:
+        """One finished episode; ``outcome`` one of :data:`OUTCOMES`."""
+        if outcome not in OUTCOMES:
+            raise ValueError(f"unknown episode outcome {outcome!r} (known: {', '.join(OUTCOMES)})")
+        with self._lock:
+            self._episodes.append((int(episode), outcome, int(steps), int(captured), float(reward), virtual_evaders))
+
+    def overrun(self, count: int = 1) -> None:
+        """Count late ticks (or set :attr:`overruns` from the loop's ticker)."""
+        with self._lock:
+            self.overruns += count
+
+    def frame(self) -> pd.DataFrame:
+        """The tick rows so far (see the module docstring for the columns)."""
+        with self._lock:
+            rows, latency = list(self._rows), list(self._latency)
+        frame = pd.DataFrame(rows, columns=list(_COLUMNS))
+        frame = frame.astype({"episode": np.int64, "step": np.int64})
+        lat = pd.DataFrame(latency, index=frame.index) if latency else pd.DataFrame(index=frame.index)
+        stages = [s for s in LATENCY_STAGES if s in lat] + sorted(s for s in lat if s not in LATENCY_STAGES)
+        lat = lat[stages].astype(np.float64).add_prefix("latency_")
+        return pd.concat([frame, lat], axis=1)
+
+    def episodes(self) -> pd.DataFrame:
+        """The finished episodes so far."""
+        with self._lock:
+            rows = list(self._episodes)
+        frame = pd.DataFrame(rows, columns=list(_EPISODE_COLUMNS))
+        return frame.astype({"episode": np.int64, "steps": np.int64, "captured": np.int64, "reward": np.float64})
+
+    def write(self, directory: Path) -> Path:
+        """Write the log directory (every file atomically); return it."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        flight, episodes = self.frame(), self.episodes()
+        atomic_write(directory / "flight.parquet", lambda f: flight.to_parquet(f, index=False))
+        atomic_write(directory / "episodes.parquet", lambda f: episodes.to_parquet(f, index=False))
+        meta = {**self.meta, "overruns": self.overruns, "geometry": self.geometry}
+        atomic_write_text(directory / "meta.json", _dumps(meta))
+        atomic_write_text(directory / "summary.json", _dumps(summarize(directory)))
+        plot_trajectories(flight, self.geometry, directory / "trajectories.png", title=_title(meta))
+        animate(flight, self.geometry, directory / "flight.gif")
+        return directory
+
+
+# ------------------------------------------------------------------ the summary
+def _read(directory: Path) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Any]]:
+    directory = Path(directory)
+    meta = json.loads((directory / "meta.json").read_text())
+    return pd.read_parquet(directory / "flight.parquet"), pd.read_parquet(directory / "episodes.parquet"), meta
+
+
+def _physical(flight: pd.DataFrame, meta: Mapping[str, Any]) -> pd.DataFrame:
+    """Rows of the real (or simulated-real) drones: those of meta's drones, else not virtual."""
+    drones = meta.get("drones")
+    return flight[flight["drone"].isin(list(drones))] if drones else flight[flight["state"] != "virtual"]
+
+
+def episode_metrics(episodes: pd.DataFrame) -> dict[str, float]:
+    """SUC, COL, AST, REW of the evaluation protocol (:func:`atdrone.teams.evaluation.metrics`), AST_std."""
+    if episodes.empty:
+        return dict.fromkeys(("SUC", "COL", "AST", "REW", "AST_std"), math.nan)
+    from atdrone.teams.evaluation import metrics
+
+    records = pd.DataFrame(
+        {
+            "success": episodes["outcome"] == "captured",
+            "collided": episodes["outcome"] == "collision",
+            "length": episodes["steps"],
+            "return": episodes["reward"],
+        }
+    )
+    out = metrics(records)
+    ok = records["length"][records["success"]]
+    out["AST_std"] = float(ok.std(ddof=1)) if len(ok) > 1 else math.nan
+    return out
+
+
+def separation(flight: pd.DataFrame) -> dict[str, Any]:
+    """The smallest 3-D distance between two drones airborne at the same tick, where and between whom."""
+    air = flight[flight["state"].isin(AIRBORNE)]
+    none = {"min_separation": math.nan, "min_separation_t": math.nan, "min_separation_pair": []}
+    if air["drone"].nunique() < 2:
+        return none
+    grid = air.groupby(["t", "drone"])[["x", "y", "z"]].first().unstack("drone")
+    drones = list(grid["x"].columns)
+    pos = np.stack([grid[c].to_numpy(np.float64) for c in ("x", "y", "z")], -1)  # (T, D, 3)
+    dist = np.linalg.norm(pos[:, :, None] - pos[:, None], axis=-1)
+    dist[:, np.arange(len(drones)), np.arange(len(drones))] = np.inf
+    dist = np.where(np.isfinite(dist), dist, np.inf)
+    k = int(np.argmin(dist))
+    ti, i, j = np.unravel_index(k, dist.shape)
+    if not np.isfinite(dist[ti, i, j]):
+        return none
+    pair = sorted([drones[i], drones[j]])
+    return {
+        "min_separation": float(dist[ti, i, j]),
+        "min_separation_t": float(grid.index[ti]),
+        "min_separation_pair": pair,
+    }
+
+
+def latency_percentiles(flight: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """p50/p95/p99/max and count of each latency stage over ticks (one value per tick, finite ones)."""
+    columns = [c for c in flight.columns if c.startswith("latency_")]
+    per_tick = flight.groupby("t")[columns].first()
+    out = {}
+    for column in columns:
+        values = per_tick[column].to_numpy(np.float64)
+        values = values[np.isfinite(values)]
+        if len(values):
+            stats = {f"p{q}": float(v) for q, v in zip(PERCENTILES, np.percentile(values, PERCENTILES), strict=True)}
+            out[column.removeprefix("latency_")] = {**stats, "max": float(values.max()), "n": len(values)}
+    return out
+
+
+def summarize(directory: Path) -> dict[str, Any]:
+    """What a log directory says, from its files alone (see :func:`format_summary`).
+
+    ticks: distinct tick times; SUC/COL/AST/REW per the evaluation protocol (SUC: % of
+    episodes captured, COL: % ending in a collision, AST: mean steps of the captured
+    ones, AST_std their sample std); interventions: rows (tick x drone) on which each
+    shield rule acted; faults: injected faults by kind; latency: per stage over ticks;
+    min_separation: the smallest distance between airborne physical drones;
+    battery_min: per physical drone (V).
+    """
+    flight, episodes, meta = _read(directory)
+    physical = _physical(flight, meta)
+    events = flight["events"].astype(str).str.split(",").explode()
+    events = events[events != ""]
+    faults = events[events.str.startswith("fault:")]
+    rules = events[~events.str.startswith("fault:")]
+    t = flight["t"].to_numpy(np.float64)
+    battery = physical.groupby("drone", sort=True)["battery"].min()
+    summary: dict[str, Any] = {
+        **{k: meta[k] for k in ("name", "task", "member", "backend", "evaders") if k in meta},
+        "ticks": int(flight["t"].nunique()),
+        "flight_time": float(t.max() - t.min()) if len(t) else 0.0,
+        "episodes": len(episodes),
+        "outcomes": {str(k): int(v) for k, v in episodes["outcome"].value_counts().sort_index().items()},
+        **episode_metrics(episodes),
+        "interventions": {str(k): int(v) for k, v in rules.value_counts().sort_index().items()},
+        "faults": {str(k).removeprefix("fault:"): int(v) for k, v in faults.value_counts().sort_index().items()},
+        "latency": latency_percentiles(flight),
+        "overruns": int(meta.get("overruns", 0)),
+        **separation(_physical(flight, meta)),
+        "battery_min": {str(k): float(v) for k, v in battery.items()},
+    }
+    summary["interventions_total"] = int(sum(summary["interventions"].values()))
+    return summary
+
+
+def _number(value: Any, fmt: str = ".1f", unit: str = "") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:{fmt}}{unit}"
+
+
+def format_summary(summary: Mapping[str, Any]) -> str:
+    """The summary as text (what ``atdrone deploy report LOG`` prints)."""
+    who = f"member {summary.get('member', '?')} on {summary.get('task', '?')} ({summary.get('backend', '?')} backend)"
+    outcomes = ", ".join(f"{k} {v}" for k, v in summary.get("outcomes", {}).items()) or "none"
+    lines = [
+        f"flight {summary.get('name', '')}: {who}",
+        f"  {summary['episodes']} episode(s), {summary['ticks']} ticks over {_number(summary['flight_time'])} s; "
+        f"outcomes: {outcomes}",
+        f"  SUC {_number(summary['SUC'], unit=' %')}  COL {_number(summary['COL'], unit=' %')}  "
+        f"AST {_number(summary['AST'], unit=' steps')}  REW {_number(summary['REW'], '.2f')}",
+        "  shield interventions: "
+        + (", ".join(f"{k} {v}" for k, v in summary["interventions"].items()) or "none")
+        + "; faults injected: "
+        + (", ".join(f"{k} {v}" for k, v in summary.get("faults", {}).items()) or "none"),
+        f"  tick overruns: {summary['overruns']}; min separation "
+        + (
+            f"{_number(summary['min_separation'], '.3f', ' m')} ({' - '.join(summary['min_separation_pair'])} "
+            f"at t = {_number(summary['min_separation_t'], '.1f')} s)"
+            if summary.get("min_separation_pair")
+            else "- (fewer than two drones airborne)"
+        ),
+        "  battery min: "
+        + (", ".join(f"{k} {_number(v, '.2f', ' V')}" for k, v in summary["battery_min"].items()) or "-"),
+    ]
+    latency = summary.get("latency", {})
+    if latency:
+        lines.append(f"  {'latency (ms)':<14}" + "".join(f"{f'p{q}':>9}" for q in PERCENTILES) + f"{'max':>9}")
+        for stage, s in latency.items():
+            cells = "".join(f"{_number(s[f'p{q}'] * 1000, '.2f'):>9}" for q in PERCENTILES)
+            lines.append(f"  {stage:<14}{cells}{_number(s['max'] * 1000, '.2f'):>9}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ MLflow
+def _metric_name(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_\-./ ]", "_", text)
+
+
+def log_to_mlflow(directory: Path, tracking_uri: str | None, run_name: str, experiment: str = EXPERIMENT) -> str:
+    """Record a flight log as an MLflow run (params, metrics, the files, tag ``kind=deploy``); its id."""
+    from atdrone.tracking import Tracker
+
+    directory = Path(directory)
+    summary = summarize(directory)
+    meta = json.loads((directory / "meta.json").read_text())
+    params = {k: v for k, v in meta.items() if k not in ("geometry", "overruns")}
+    metrics: dict[str, float] = {
+        f"deploy/{k}": summary[k]
+        for k in ("SUC", "COL", "AST", "REW", "episodes", "ticks", "overruns", "min_separation", "flight_time")
+    }
+    metrics["deploy/interventions"] = summary["interventions_total"]
+    metrics.update({f"deploy/interventions/{k}": v for k, v in summary["interventions"].items()})
+    for stage, stats in summary["latency"].items():
+        metrics.update({f"deploy/latency/{stage}_p{q}": stats[f"p{q}"] for q in PERCENTILES})
+    metrics.update({f"deploy/battery_min/{k}": v for k, v in summary["battery_min"].items()})
+    tracker = Tracker(tracking_uri)
+    tags = {"kind": "deploy", "atdrone.task": str(meta.get("task", "")), "atdrone.member": str(meta.get("member", ""))}
+    with tracker.run(experiment, run_name, tags=tags) as run_id:
+        tracker.log_params(params)
+        tracker.log_metrics({_metric_name(k): v for k, v in metrics.items()}, step=0)
+        episodes = pd.read_parquet(directory / "episodes.parquet")
+        for row in episodes.itertuples():  # per-episode series, one step per episode
+            tracker.log_metrics({"deploy/episode_steps": row.steps, "deploy/episode_reward": row.reward}, row.episode)
+        for path in sorted(p for p in directory.iterdir() if p.is_file() and not p.name.startswith(".")):
+            tracker.log_artifact(path)
+    return run_id
+
+
+# ------------------------------------------------------------------ pictures
+def _title(meta: Mapping[str, Any]) -> str:
+    return f"{meta.get('name', 'flight')}: {meta.get('member', '?')} on {meta.get('task', '?')}"
+
+
+def _figure(geometry: Mapping[str, Any], height_px: int, header: float) -> tuple[Any, Any, Any]:
+    """An Agg figure with the arena, walls and obstacles drawn (render.py's look)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle, Rectangle
+
+    from atdrone.envs.render import FIGURE_DPI, FLOOR_COLOR, GRID_COLOR, OBSTACLE_COLOR, WALL_COLOR
+
+    width, height, pad = float(geometry["width"]), float(geometry["height"]), 0.15
+    scale = height_px / FIGURE_DPI / (height + 2 * pad)
+    total = (height + 2 * pad) * scale + header
+    figure = Figure(figsize=((width + 2 * pad) * scale, total), dpi=FIGURE_DPI)
+    canvas = FigureCanvasAgg(figure)
+    ax = figure.add_axes((0.0, 0.0, 1.0, 1.0 - header / total))
+    ax.set_xlim(-pad, width + pad)
+    ax.set_ylim(-pad, height + pad)
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    ax.add_patch(Rectangle((0, 0), width, height, facecolor=FLOOR_COLOR, edgecolor="none", zorder=0))
+    ax.add_patch(Rectangle((0, 0), width, height, facecolor="none", edgecolor=WALL_COLOR, linewidth=3, zorder=5))
+    for cx, cy, hx, hy in geometry.get("boxes", []):
+        ax.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, facecolor=OBSTACLE_COLOR, zorder=2))
+    for cx, cy, r in geometry.get("discs", []):
+        ax.add_patch(Circle((cx, cy), r, facecolor=OBSTACLE_COLOR, zorder=2))
+    ax.vlines(np.arange(0.5, width, 0.5), 0, height, color=GRID_COLOR, linewidth=0.6, zorder=0.5)
+    ax.hlines(np.arange(0.5, height, 0.5), 0, width, color=GRID_COLOR, linewidth=0.6, zorder=0.5)
+    return figure, canvas, ax
+
+
+def _drone_colors(flight: pd.DataFrame) -> dict[str, str]:
+    """A colour per drone: its role's hue, lightened for each further drone of the role."""
+    from matplotlib.colors import to_rgb
+
+    roles = flight.groupby("drone", sort=False)["role"].first()
+    colors = {}
+    for role, names in roles.groupby(roles, sort=False):
+        base = np.array(to_rgb(ROLE_COLORS.get(str(role), "#555555")))
+        for k, name in enumerate(names.index):
+            mix = 0.45 * k / max(1, len(names) - 1) if len(names) > 1 else 0.0
+            colors[str(name)] = "#{:02x}{:02x}{:02x}".format(*(255 * (base + (1 - base) * mix)).astype(int))
+    return colors
+
+
+def _paths(flight: pd.DataFrame, columns: Sequence[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Drones, tick times (T,) and their ``columns`` values (T, D, len(columns)), NaN where absent."""
+    grid = flight.groupby(["t", "drone"], sort=True)[list(columns)].first().unstack("drone")
+    drones = [str(d) for d in grid[columns[0]].columns]
+    values = np.stack([grid[c].to_numpy(np.float64) for c in columns], -1)
+    return drones, grid.index.to_numpy(np.float64), values
+
+
+def plot_trajectories(flight: pd.DataFrame, geometry: Mapping[str, Any], path: Path, title: str = "") -> Path:
+    """The arena with every drone's path, its setpoints faint and the shield's events marked (PNG)."""
+    from atdrone.envs.render import save_png
+
+    figure, canvas, ax = _figure(geometry, 640, 0.4)
+    figure.text(0.03, 0.985, title, fontsize=10, weight="bold", va="top")
+    colors = _drone_colors(flight)
+    if not flight.empty:
+        drones, _, xy = _paths(flight, ["x", "y"])
+        _, _, sp = _paths(flight, ["setpoint_x", "setpoint_y"])
+        _, _, episode = _paths(flight, ["episode"])
+        # break a path where its episode changes (virtual evaders jump to new spawns)
+        jump = np.r_[False, (np.diff(episode[..., 0], axis=0) != 0).any(1)]
+        xy[jump], sp[jump] = np.nan, np.nan
+        for d, name in enumerate(drones):
+            keep = np.isfinite(xy[:, d, 0])
+            style = "--" if name.startswith("virtual") else "-"
+            ax.plot(*xy[keep, d].T, style, color=colors[name], linewidth=1.4, zorder=3, label=name)
+            ax.plot(*sp[np.isfinite(sp[:, d, 0]), d].T, color=colors[name], linewidth=0.8, alpha=0.25, zorder=2.5)
+        last = flight.dropna(subset=["x", "y"]).groupby("drone", sort=False)[["x", "y"]].last()  # where each ended
+        ax.scatter(last.x, last.y, s=36, c=[colors[str(n)] for n in last.index], edgecolors="white", zorder=6)
+        for name, (x, y) in last.iterrows():
+            ax.annotate(str(name), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=7)
+        events = flight[flight["events"].astype(str) != ""]
+        fault = events["events"].str.contains("fault:")
+        shield_rows = events[events["events"].str.replace(r"fault:\w+", "", regex=True).str.strip(",") != ""]
+        if len(shield_rows):
+            ax.scatter(shield_rows.x, shield_rows.y, marker="x", color="black", s=22, zorder=8, label="shield")
+        if fault.any():
+            ax.scatter(events.x[fault], events.y[fault], marker="^", color="#ff8c00", s=30, zorder=8, label="fault")
+        ax.legend(loc="upper right", fontsize=6, framealpha=0.8)
+    canvas.draw()
+    frame = np.asarray(canvas.buffer_rgba())[..., :3].copy()
+    figure.clear()
+    return save_png(frame, path)
+
+
+def animate(flight: pd.DataFrame, geometry: Mapping[str, Any], path: Path, frames: int = GIF_FRAMES) -> Path:
+    """A short GIF of the flight: at most ``frames`` evenly spaced ticks, drones with 2 s trails."""
+    from atdrone.envs.render import save_gif
+
+    figure, canvas, ax = _figure(geometry, 320, 0.3)
+    label = figure.text(0.03, 0.985, "", fontsize=8, family="monospace", va="top")
+    images = []
+    if flight.empty:
+        canvas.draw()
+        images.append(np.asarray(canvas.buffer_rgba())[..., :3].copy())
+    else:
+        colors = _drone_colors(flight)
+        drones, times, xy = _paths(flight, ["x", "y"])
+        _, _, info = _paths(flight, ["episode", "step"])
+        picks = np.unique(np.linspace(0, len(times) - 1, min(frames, len(times))).astype(int))
+        dots = ax.scatter(np.zeros(len(drones)), np.zeros(len(drones)), s=40, c=[colors[d] for d in drones], zorder=6)
+        trails = [ax.plot([], [], color=colors[d], linewidth=1, alpha=0.5, zorder=4)[0] for d in drones]
+        for k in picks:
+            window = (times > times[k] - 2.0) & (times <= times[k])
+            dots.set_offsets(np.nan_to_num(xy[k], nan=-10.0))  # unknown poses drawn off the arena
+            for d, line in enumerate(trails):
+                line.set_data(xy[window, d, 0], xy[window, d, 1])
+            episode, step = np.nanmax(info[k], axis=0)
+            label.set_text(f"t = {times[k]:6.1f} s   episode {int(episode)}   step {int(step)}")
+            canvas.draw()
+            images.append(np.asarray(canvas.buffer_rgba())[..., :3].copy())
+    figure.clear()
+    return save_gif(images, path, fps=10)
