@@ -13,7 +13,7 @@ $(BIN)/python:
 # torch first and pinned: 2.13.0 is the CPU build on this machine's disk
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e ".[dev]"
+	$(BIN)/pip install -q -e ".[dev,deploy]"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -9,6 +9,8 @@ new subcommand is one more pair and one more table row.
     atdrone demo [--out demo_out]
     atdrone evaluate --policy greedy|vicsek|PATH --task 4p2e1o|all --zoo zoo1|all [--episodes 500]
                      [--seeds 0 1 2] [--out eval_out]
+    atdrone deploy CONFIG [--arm] [--backend sim|cflib] [--episodes N] [--compare] [--tracking-uri URI]
+    atdrone deploy report LOG
 """
 
 from __future__ import annotations
@@ -352,12 +354,80 @@ def run_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- deploy
+def add_deploy(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "deploy",
+        help="fly a population member on Crazyflie drones (or the simulated fleet); 'deploy report LOG' summarises",
+        description="Connect the backend of a deploy config (configs/deploy/*.json), run the preflight checks and "
+        "print the plan. Nothing arms without --arm (a dry run). With --arm: fly the episodes, write the flight log "
+        "(Parquet, trajectories plot, GIF) under out_dir and log a deploy run to MLflow. --compare (sim backend) puts "
+        "the flown SUC/COL/AST beside the training simulator's. 'atdrone deploy report LOG' prints a log's summary.",
+    )
+    p.add_argument("config", help="deploy config: a configs/deploy name or a JSON path; or 'report'")
+    p.add_argument("log", nargs="?", help="with 'report': the flight log directory")
+    p.add_argument("--arm", action="store_true", help="arm the drones and fly (without it: a dry run)")
+    p.add_argument("--backend", choices=["sim", "cflib"], default=None, help="override the config's backend")
+    p.add_argument("--episodes", type=_positive_int, default=None, help="override the config's episodes")
+    p.add_argument("--compare", action="store_true", help="sim backend: the gap to the training simulator")
+    p.add_argument(
+        "--tracking-uri", default=None, help="MLflow tracking URI (default MLFLOW_TRACKING_URI or ./mlflow.db)"
+    )
+    p.add_argument("--out-dir", default=None, help="override the config's out_dir (flight logs)")
+    return p
+
+
+def run_deploy(args: argparse.Namespace) -> int:
+    import json
+
+    if args.config == "report":
+        from atdrone.deploy.flightlog import format_summary, summarize
+
+        if not args.log or not Path(args.log).is_dir():
+            _error(args, f"no flight log directory {args.log!r} (usage: atdrone deploy report LOG)")
+            return EXIT_USAGE
+        print(format_summary(summarize(Path(args.log))))
+        return 0
+    if args.log:
+        _error(args, f"unexpected argument {args.log!r}")
+        return EXIT_USAGE
+    from atdrone.deploy.bridge import BridgeError
+    from atdrone.deploy.config import load_deploy
+    from atdrone.deploy.job import DeployError, format_gap
+    from atdrone.deploy.job import run_deploy as deploy
+    from atdrone.deploy.mocap import MocapError
+
+    cfg = load_deploy(args.config, backend=args.backend, episodes=args.episodes, out_dir=args.out_dir)
+    if args.compare and cfg.backend != "sim":
+        _error(args, "--compare needs the sim backend")
+        return EXIT_USAGE
+    try:
+        result = deploy(cfg, arm=args.arm, tracking_uri=args.tracking_uri, compare=args.compare)
+    except (DeployError, BridgeError, MocapError, KeyError) as exc:
+        _error(args, exc.args[0] if exc.args else exc)
+        return 1
+    if not result.preflight.ok:
+        return 1
+    if result.summary is not None:
+        from atdrone.deploy.flightlog import format_summary
+
+        print(format_summary(result.summary))
+    if result.gap is not None:
+        print(format_gap(result.gap))
+        assert result.log_dir is not None
+        from atdrone.fileio import atomic_write_bytes
+
+        atomic_write_bytes(result.log_dir / "gap.json", json.dumps(result.gap, indent=2).encode())
+    return 0
+
+
 COMMANDS: dict[str, Command] = {
     "render": Command(add_render, run_render),
     "demo": Command(add_demo, run_demo),
     "train": Command(add_train, run_train),
     "registry": Command(add_registry, run_registry),
     "evaluate": Command(add_evaluate, run_evaluate),
+    "deploy": Command(add_deploy, run_deploy),
 }
 
 

@@ -1,0 +1,218 @@
+"""The deploy document (configs/deploy/*.json): what to fly, on what, and how safely.
+
+Validated like the task documents: any problem raises
+:class:`~atdrone.config.ConfigError` whose message starts with the JSON path, e.g.
+``drones[2].role: must be one of ['learner', 'partner', 'evader'], got "pilot"``.
+
+Keys (every one documented on its dataclass below):
+
+- ``task``: a paper task name or task file (arena, obstacles, spawn regions, speeds).
+- ``member``: the policy flown in the learner slots: ``{"checkpoint": PATH}``,
+  ``{"registry": DB, "id": MEMBER}`` or ``{"model": "models:/atdrone-NAME@champion"}``.
+- ``partners``: ``{"zoo": "zoo1"}`` (each episode draws the partner drones' members
+  from the zoo) or ``{"members": ["greedy", "vicsek"]}`` (partner drone i flies member i,
+  a rule or a checkpoint path).
+- ``evaders``: ``"virtual"`` (simulated evaders the pursuers see, shown in the log) or
+  ``"drones"`` (real drones flying the task's escape policy).
+- ``drones``: name, radio URI, rigid-body name and role of every drone.
+- ``flight_height``, ``backend`` (``sim`` or ``cflib``), ``mocap``, ``frame``, ``shield``,
+  ``sim`` (the simulated fleet and mocap), ``faults`` (injected on the sim backend),
+  ``episodes``, ``horizon``, ``seed``, ``out_dir``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+from atdrone.config import ConfigError, TaskConfig, _check, _non_negative, _positive, check_task_field, load_config
+from atdrone.deploy.mocap import FrameTransform
+from atdrone.deploy.shield import ShieldConfig
+
+ROLES = ("learner", "partner", "evader")
+FAULT_KINDS = ("mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall")
+
+
+@dataclass(frozen=True)
+class MemberRef:
+    """The member flown: exactly one of ``checkpoint``, ``registry`` + ``id``, or ``model``."""
+
+    checkpoint: str = field(default="", metadata={"empty_ok": True})
+    registry: str = field(default="", metadata={"empty_ok": True})
+    id: str = field(default="", metadata={"empty_ok": True})
+    model: str = field(default="", metadata={"empty_ok": True})
+
+
+@dataclass(frozen=True)
+class Partners:
+    """Who flies the partner drones: a zoo (drawn per episode) or one member per partner drone."""
+
+    zoo: str = field(default="", metadata={"empty_ok": True})
+    members: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Drone:
+    """One drone: its name, radio URI (cflib backend; the sim backend assigns its own), rigid body and role."""
+
+    name: str
+    role: Literal["learner", "partner", "evader"]
+    uri: str = field(default="", metadata={"empty_ok": True})
+    body: str = field(default="", metadata={"empty_ok": True})  # the motion-capture rigid body (default: name)
+
+    @property
+    def rigid_body(self) -> str:
+        return self.body or self.name
+
+
+@dataclass(frozen=True)
+class Mocap:
+    """The motion-capture source of the cflib backend (the ``motioncapture`` package).
+
+    ``type``: vicon, optitrack, qualisys, vrpn, mock, ...; ``hostname``; ``options``: more
+    string settings passed through; ``connect_timeout`` seconds.
+    """
+
+    type: str = "mock"
+    hostname: str = field(default="", metadata={"empty_ok": True})
+    options: dict[str, str] = field(default_factory=dict)
+    connect_timeout: float = field(default=5.0, metadata=_check(_positive))
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """The simulated fleet and motion capture (sim backend).
+
+    clock_rate: simulated seconds per wall second (1: real time); mocap_rate Hz;
+    mocap_noise m (std); mocap_latency s; mocap_dropout: probability a body is missing
+    from a frame; tau s: how fast a drone tracks its setpoint; true_frame: how the
+    simulated mocap system is really mounted (default: as ``frame`` says).
+    """
+
+    clock_rate: float = field(default=1.0, metadata=_check(_positive))
+    mocap_rate: float = field(default=100.0, metadata=_check(_positive))
+    mocap_noise: float = field(default=0.002, metadata=_check(_non_negative))
+    mocap_latency: float = field(default=0.01, metadata=_check(_non_negative))
+    mocap_dropout: float = field(default=0.0, metadata=_check(lambda v: None if 0 <= v < 1 else "must be in [0, 1)"))
+    tau: float = field(default=0.1, metadata=_check(_positive))
+    true_frame: FrameTransform | None = None
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A fault injected on the sim backend at clock time ``at`` (seconds since the loop started).
+
+    kind: mocap_dropout (``drone`` or the whole system when empty, for ``duration`` s),
+    link_loss (``drone``), drift (``drone`` pushed by ``accel`` m/s^2), low_battery
+    (``drone`` at ``volts``), policy_stall (the policy takes ``duration`` s).
+    """
+
+    kind: Literal["mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall"]
+    at: float = field(metadata=_check(_non_negative))
+    drone: str = field(default="", metadata={"empty_ok": True})
+    duration: float = field(default=1.0, metadata=_check(_non_negative))
+    accel: tuple[float, float, float] = (0.5, 0.0, 0.0)
+    volts: float = field(default=3.2, metadata=_check(_positive))
+
+
+@dataclass(frozen=True)
+class DeployConfig:
+    """A deploy document (see the module docstring)."""
+
+    task: str
+    member: MemberRef
+    drones: tuple[Drone, ...]
+    partners: Partners = field(default_factory=Partners)
+    evaders: Literal["virtual", "drones"] = "virtual"
+    name: str = "deploy"
+    backend: Literal["sim", "cflib"] = "sim"
+    flight_height: float = field(default=0.5, metadata=_check(_positive))
+    takeoff_duration: float = field(default=2.0, metadata=_check(_positive))
+    goto_speed: float = field(default=0.3, metadata=_check(_positive))  # m/s flying back to spawn between episodes
+    mocap: Mocap = field(default_factory=Mocap)
+    frame: FrameTransform = field(default_factory=FrameTransform)
+    shield: ShieldConfig = field(default_factory=ShieldConfig)
+    sim: SimSettings = field(default_factory=SimSettings)
+    faults: tuple[Fault, ...] = ()
+    episodes: int = field(default=1, metadata=_check(_positive))
+    horizon: int = field(default=0, metadata=_check(_non_negative))  # steps per episode; 0: the task's horizon
+    min_battery_preflight: float = field(default=3.8, metadata=_check(_positive))
+    spawn_tolerance: float = field(default=0.15, metadata=_check(_non_negative))
+    seed: int = 0
+    out_dir: str = "reports/deploy"
+
+    def with_overrides(self, **changes: Any) -> DeployConfig:
+        """A copy with the non-None ``changes`` applied and validated again."""
+        cfg = replace(self, **{k: v for k, v in changes.items() if v is not None})
+        validate(cfg)
+        return cfg
+
+    def role_names(self, role: str) -> list[str]:
+        """The drones of a role, in document order."""
+        return [d.name for d in self.drones if d.role == role]
+
+
+def task_of(cfg: DeployConfig) -> TaskConfig:
+    return check_task_field(cfg.task)
+
+
+def validate(cfg: DeployConfig) -> None:
+    """Checks across fields: the member reference, roles against the task, faults against drones."""
+    refs = [k for k in ("checkpoint", "model") if getattr(cfg.member, k)]
+    if cfg.member.registry or cfg.member.id:
+        if not (cfg.member.registry and cfg.member.id):
+            raise ConfigError("member", "a registry member needs both 'registry' and 'id'")
+        refs.append("registry")
+    if len(refs) != 1:
+        raise ConfigError("member", f"give exactly one of checkpoint, registry + id, model; got {refs or 'none'}")
+    if cfg.member.model and not cfg.member.model.startswith("models:/"):
+        raise ConfigError("member.model", f"must look like 'models:/NAME@ALIAS', got {cfg.member.model!r}")
+    task = task_of(cfg)
+    names = [d.name for d in cfg.drones]
+    for i, d in enumerate(cfg.drones):
+        if names.index(d.name) != i:
+            raise ConfigError(f"drones[{i}].name", f"duplicate drone name {d.name!r}")
+        if cfg.backend == "cflib" and not d.uri:
+            raise ConfigError(f"drones[{i}].uri", "the cflib backend needs every drone's radio URI")
+    counts = {r: len(cfg.role_names(r)) for r in ROLES}
+    num_p, num_ctrl = task.players.num_p, task.players.num_ctrl
+    if counts["learner"] != num_ctrl:
+        raise ConfigError("drones", f"task {task.name} has {num_ctrl} learner slots, got {counts['learner']} learners")
+    if counts["partner"] != num_p - num_ctrl:
+        raise ConfigError(
+            "drones", f"task {task.name} has {num_p - num_ctrl} partner slots, got {counts['partner']} partners"
+        )
+    want_e = task.players.num_e if cfg.evaders == "drones" else 0
+    if counts["evader"] != want_e:
+        raise ConfigError("drones", f"evaders {cfg.evaders!r} needs {want_e} evader drones, got {counts['evader']}")
+    if bool(cfg.partners.zoo) == bool(cfg.partners.members):
+        raise ConfigError("partners", "give exactly one of 'zoo' or 'members'")
+    if cfg.partners.members and len(cfg.partners.members) != counts["partner"]:
+        raise ConfigError(
+            "partners.members",
+            f"one member per partner drone: {counts['partner']} drones, got {len(cfg.partners.members)}",
+        )
+    for i, f in enumerate(cfg.faults):
+        if f.drone and f.drone not in names:
+            raise ConfigError(f"faults[{i}].drone", f"no drone {f.drone!r} (drones: {', '.join(names)})")
+        if f.kind in ("link_loss", "drift", "low_battery") and not f.drone:
+            raise ConfigError(f"faults[{i}].drone", f"a {f.kind} fault names its drone")
+    lo, hi = cfg.shield.z_limits
+    if not lo <= cfg.flight_height <= hi:
+        raise ConfigError("flight_height", f"must lie within shield.z_limits {[lo, hi]}, got {cfg.flight_height}")
+
+
+def load_deploy(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> DeployConfig:
+    """A deploy document from configs/deploy/<name>.json, a path or a mapping, validated."""
+    text = str(path_or_doc) if not isinstance(path_or_doc, Mapping) else ""
+    if (
+        text
+        and not Path(text).is_file()
+        and (Path(__file__).parents[2] / "configs" / "deploy" / f"{text}.json").is_file()
+    ):
+        path_or_doc = Path(__file__).parents[2] / "configs" / "deploy" / f"{text}.json"
+    cfg: DeployConfig = load_config(DeployConfig, path_or_doc, "deploy", **overrides)
+    validate(cfg)
+    return cfg

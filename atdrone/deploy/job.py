@@ -1,0 +1,394 @@
+"""The deploy job: build the backend, run the dry run's checks, fly (only with ``arm``), log, report.
+
+:func:`run_deploy` is what ``atdrone deploy CONFIG`` and ``jobs/deploy.py`` call:
+
+1. the backend: ``sim`` (a :class:`~atdrone.deploy.simfleet.SimFleet` on loopback UDP
+   ports, :class:`~atdrone.deploy.mocap.SimMocap`, a scaled clock, the config's faults)
+   or ``cflib`` (the configured radio URIs and a ``motioncapture`` source); both talk
+   through the same :class:`~atdrone.deploy.bridge.CflibBridge`;
+2. connect, stream motion-capture poses to the drones (extpos, at the mocap rate), run
+   the preflight checks (:mod:`atdrone.deploy.preflight`) and print the plan;
+3. without ``arm`` stop there (a dry run: nothing is ever armed); with it, fly
+   (:class:`~atdrone.deploy.loop.Flight`) and write the flight log, log it to MLflow;
+4. on the sim backend, ``compare`` puts the flown SUC/COL/AST beside the training
+   simulator's evaluation of the same team on the same task (the gap to simulation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from atdrone.config import TaskConfig
+from atdrone.deploy.bridge import Bridge, CflibBridge
+from atdrone.deploy.clock import Clock, RealClock, ScaledClock
+from atdrone.deploy.config import DeployConfig, task_of
+from atdrone.deploy.flightlog import FlightLog, log_to_mlflow, summarize
+from atdrone.deploy.loop import FaultClock, Flight, StopRequest, Team, command
+from atdrone.deploy.mocap import MocapSource, MotionCaptureSource, SimMocap
+from atdrone.deploy.preflight import (
+    Preflight,
+    check_heading,
+    check_observation,
+    check_spawn,
+    hover_and_turn,
+    spawn_regions,
+)
+from atdrone.policies.base import Policy
+
+Say = Callable[[str], None]
+
+
+class DeployError(RuntimeError):
+    """The deploy job cannot go on: a failed preflight, a member that cannot be had."""
+
+
+@dataclass
+class DeployResult:
+    """What a deploy job did: its checks, whether it flew, its log directory and summary."""
+
+    preflight: Preflight
+    flown: bool
+    log_dir: Path | None = None
+    summary: dict[str, Any] | None = None
+    run_id: str = ""
+    gap: dict[str, Any] | None = None
+    sent: dict[str, int] | None = None
+
+
+def effective_task(cfg: DeployConfig) -> TaskConfig:
+    """The task flown: the config's task with its horizon when the config sets one."""
+    task = task_of(cfg)
+    if cfg.horizon:
+        task = dataclasses.replace(task, task=dataclasses.replace(task.task, task_horizon=cfg.horizon))
+    return task
+
+
+# ------------------------------------------------------------------ policies
+def member_checkpoint(cfg: DeployConfig) -> Path:
+    """The checkpoint file of the member flown (a path, a registry member, or an MLflow model)."""
+    ref = cfg.member
+    if ref.checkpoint:
+        return Path(ref.checkpoint)
+    if ref.registry:
+        from atdrone.registry import Registry
+
+        if not Path(ref.registry).is_file():
+            raise DeployError(f"member.registry: no registry file {ref.registry!r}")
+        with Registry(ref.registry, create=False) as reg:
+            try:
+                member = reg.member(ref.id)
+            except KeyError as exc:
+                raise DeployError(f"member.id: {exc.args[0]}") from None
+        if not member.get("checkpoint"):
+            raise DeployError(f"member.id: member {ref.id!r} has no checkpoint")
+        path = Path(member["checkpoint"])
+        return path if path.is_absolute() else Path(ref.registry).parent / path
+    from atdrone.tracking import model_checkpoint
+
+    return Path(model_checkpoint(ref.model))
+
+
+def build_team(cfg: DeployConfig) -> tuple[Team, str]:
+    """The learner and partner policies of the flight; the learner's name."""
+    from atdrone.policies.zoo import load_checkpoint, load_zoo, policy_from_spec
+
+    path = member_checkpoint(cfg)
+    learner = load_checkpoint(path)
+    name = cfg.member.id or path.stem
+    if cfg.partners.members:
+        return Team(learner, [policy_from_spec(m) for m in cfg.partners.members]), name
+    zoo = load_zoo(cfg.partners.zoo)
+    if zoo.missing:
+        raise DeployError(f"partners.zoo: zoo {zoo.name} is missing {', '.join(zoo.missing)}")
+    pool = zoo.policies()
+    slots = len(cfg.role_names("partner"))
+
+    def draw(rng: np.random.Generator) -> list[Policy]:
+        return [pool[i] for i in rng.integers(len(pool), size=slots)]
+
+    return Team(learner, [pool[0]] * slots, draw_partners=draw), name
+
+
+# ------------------------------------------------------------------ backends
+@dataclass
+class Backend:
+    """A connected bridge, a running mocap source, their clock, and the faults to inject."""
+
+    bridge: Bridge
+    mocap: MocapSource
+    clock: Clock
+    faults: FaultClock
+
+
+def ground_positions(cfg: DeployConfig, task: TaskConfig, seed: int) -> np.ndarray:
+    """Where the simulated drones stand before takeoff: a spawn draw of the task (z = 0)."""
+    from atdrone.envs.core import spawn
+
+    pos, _ = spawn(task, np.random.default_rng(seed), 1)
+    pursuers = cfg.role_names("learner") + cfg.role_names("partner")
+    xy = {n: pos[0, i] for i, n in enumerate(pursuers)}
+    xy.update({n: pos[0, len(pursuers) + j] for j, n in enumerate(cfg.role_names("evader"))})
+    return np.array([[*xy[d.name], 0.0] for d in cfg.drones])
+
+
+@contextmanager
+def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
+    """The configured backend, connected; everything closed on exit."""
+    names = [d.name for d in cfg.drones]
+    bodies = {d.rigid_body: d.name for d in cfg.drones}
+    faults = FaultClock()
+    with ExitStack() as stack:
+        mocap: MocapSource
+        if cfg.backend == "sim":
+            from atdrone.deploy.simfleet import DroneDynamics, SimFleet
+
+            clock: Clock = ScaledClock(cfg.sim.clock_rate)
+            fleet = stack.enter_context(
+                SimFleet(names, ground_positions(cfg, task, cfg.seed + 7919), clock, DroneDynamics(tau=cfg.sim.tau))
+            )
+            truth = fleet.truth
+            by_body = {d.rigid_body: d.name for d in cfg.drones}
+
+            def bodies_truth() -> dict[str, tuple[np.ndarray, float]]:
+                t = truth()
+                return {b: t[n] for b, n in by_body.items()}
+
+            mocap = SimMocap(
+                bodies_truth,
+                cfg.frame,
+                clock,
+                rate=cfg.sim.mocap_rate,
+                noise=cfg.sim.mocap_noise,
+                latency=cfg.sim.mocap_latency,
+                dropout=cfg.sim.mocap_dropout,
+                seed=cfg.seed,
+                true_transform=cfg.sim.true_frame or cfg.frame,
+            )
+            bridge: Bridge = CflibBridge(fleet.uris)
+            _schedule(cfg, faults, fleet, mocap, clock)
+        else:
+            clock = RealClock()
+            mocap = MotionCaptureSource(
+                cfg.mocap.type,
+                {"hostname": cfg.mocap.hostname, **cfg.mocap.options}
+                if cfg.mocap.hostname
+                else dict(cfg.mocap.options),
+                [d.rigid_body for d in cfg.drones],
+                cfg.frame,
+                clock,
+                connect_timeout=cfg.mocap.connect_timeout,
+            )
+            bridge = CflibBridge({d.name: d.uri for d in cfg.drones})
+        mocap.start()
+        stack.callback(mocap.stop)
+        bridge.open()
+        stack.callback(bridge.close)
+        mocap.on_frame(
+            lambda poses: bridge.send_extpos({bodies[b]: tuple(p.pos) for b, p in poses.items() if b in bodies})
+        )
+        yield Backend(bridge, mocap, clock, faults)
+
+
+def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap, clock: Clock) -> None:
+    """Turn the config's faults into callables fired by the loop at their flight time."""
+    body = {d.name: d.rigid_body for d in cfg.drones}
+    for f in cfg.faults:
+        fire: Callable[[], None]
+        if f.kind == "mocap_dropout":
+            fire = partial(_drop, mocap, clock, body[f.drone] if f.drone else None, f.duration)
+        elif f.kind == "link_loss":
+            fire = partial(fleet.cut_link, f.drone)
+        elif f.kind == "drift":
+            fire = partial(fleet.push, f.drone, np.array(f.accel))
+        elif f.kind == "low_battery":
+            fire = partial(fleet.set_battery, f.drone, f.volts)
+        else:
+            fire = partial(setattr, faults, "stall", f.duration)
+        faults.add(f.at, f.drone, f.kind, fire)
+
+
+def _drop(mocap: SimMocap, clock: Clock, body: str | None, duration: float) -> None:
+    mocap.drop(body, clock.now(), clock.now() + duration)
+
+
+# ------------------------------------------------------------------ preflight
+def run_preflight(flight: Flight, cfg: DeployConfig, task: TaskConfig, wait: float = 3.0) -> Preflight:
+    """Every check of the dry run on the live backend (see :mod:`atdrone.deploy.preflight`)."""
+    clock, pre = flight.clock, Preflight()
+    deadline = clock.now() + wait * clock.rate
+    while clock.now() < deadline:
+        pos, yaw, age = flight.measured()
+        if (age < cfg.shield.stale_pose).all() and all(np.isfinite(v) for v in flight.bridge.battery().values()):
+            break
+        clock.sleep(0.05)
+    pos, yaw, age = flight.measured()
+    stale = [
+        f"{n} ({'never seen' if not np.isfinite(a) else f'{a:.2f} s old'})"
+        for n, a in zip(flight.names, age, strict=True)
+        if not a < cfg.shield.stale_pose
+    ]
+    pre.add(
+        "tracking",
+        [f"no fresh pose of {', '.join(stale)}"] if stale else [],
+        f"{len(flight.names)} rigid bodies tracked",
+    )
+    p_boxes, e_boxes = spawn_regions(task)
+    boxes = p_boxes[: len(flight.pursuers)] + e_boxes[: len(flight.evader_drones)]
+    pre.add("spawn", check_spawn(flight.names, pos, boxes, cfg.spawn_tolerance), "every drone inside its spawn region")
+    pre.add("heading", check_heading(flight.names, yaw), "every drone faces +y")
+    battery = flight.bridge.battery()
+    low = [
+        f"{n} at {battery.get(n, math.nan):.2f} V"
+        for n in flight.names
+        if not battery.get(n, math.nan) >= cfg.min_battery_preflight
+    ]
+    pre.add("battery", [f"below {cfg.min_battery_preflight} V: {', '.join(low)}"] if low else [], "every battery fine")
+    P = len(flight.pursuers)
+    if np.isfinite(pos).all() and np.isfinite(yaw).all():
+        pos_e = pos[P:, :2] if flight.evader_drones else np.array([b.mean(1) for b in e_boxes])
+        obs_problems = check_observation(
+            task, pos[:P, :2], yaw[:P], pos_e, lambda a, h, e, c: flight.observations(a, h, e, c)[0]
+        )
+    else:
+        obs_problems = ["poses missing: cannot compare observations"]
+    pre.add("observation", obs_problems, "the loop's observations equal the simulator's at the live poses")
+    pre.add("command path", hover_and_turn(task, cfg.flight_height, command), "hover-and-turn follows the turn rule")
+    return pre
+
+
+def plan_text(cfg: DeployConfig, member: str, task: TaskConfig) -> str:
+    """What an armed run would do."""
+    drones = ", ".join(f"{d.name} ({d.role}{', ' + d.uri if d.uri else ''})" for d in cfg.drones)
+    partners = f"zoo {cfg.partners.zoo}" if cfg.partners.zoo else ", ".join(cfg.partners.members)
+    return (
+        f"plan: fly member {member} on {task.name} ({cfg.backend} backend), {cfg.episodes} episode(s) of at most "
+        f"{task.task.task_horizon} steps at {cfg.flight_height} m; partners {partners}; evaders {cfg.evaders}\n"
+        f"      drones: {drones}\n"
+        f"      shield: fence margin {cfg.shield.margin} m, separation {cfg.shield.min_separation} m, "
+        f"stale pose {cfg.shield.stale_pose} s, battery {cfg.shield.min_battery} V"
+    )
+
+
+# ------------------------------------------------------------------ the job
+def run_deploy(
+    cfg: DeployConfig,
+    arm: bool = False,
+    tracking_uri: str | None = None,
+    compare: bool = False,
+    say: Say = print,
+    stop: StopRequest | None = None,
+) -> DeployResult:
+    """The deploy job (see the module docstring). Nothing arms unless ``arm``."""
+    stop = stop or StopRequest()
+    with stop.handling_signals():  # SIGINT / SIGTERM from here on: every drone lands
+        return _deploy(cfg, arm, tracking_uri, compare, say, stop)
+
+
+def _deploy(
+    cfg: DeployConfig, arm: bool, tracking_uri: str | None, compare: bool, say: Say, stop: StopRequest
+) -> DeployResult:
+    task = effective_task(cfg)
+    team, member = build_team(cfg)
+    with open_backend(cfg, task) as backend:
+        log = FlightLog(
+            {
+                "name": cfg.name,
+                "task": task.name,
+                "member": member,
+                "backend": cfg.backend,
+                "evaders": cfg.evaders,
+                "dt": task.dt,
+                "arena": [task.site.boundary.width, task.site.boundary.height],
+                "drones": {d.name: d.role for d in cfg.drones},
+                "flight_height": cfg.flight_height,
+                "clock_rate": backend.clock.rate,
+            }
+        )
+        flight = Flight(cfg, task, team, backend.bridge, backend.mocap, backend.clock, log, backend.faults, stop)
+        say(f"[deploy] {cfg.name}: {cfg.backend} backend connected; preflight checks")
+        pre = run_preflight(flight, cfg, task)
+        say(pre.text())
+        say(plan_text(cfg, member, task))
+        if not pre.ok:
+            say("[deploy] preflight failed: nothing armed")
+            return DeployResult(pre, False, sent=dict(backend.bridge.sent()))
+        if not arm:
+            say("[deploy] dry run: nothing armed (pass --arm to fly)")
+            return DeployResult(pre, False, sent=dict(backend.bridge.sent()))
+        say(f"[deploy] arming and flying {cfg.episodes} episode(s)")
+        started = time.perf_counter()
+        flight.t0 = backend.clock.now()
+        flight.run()
+        log.overruns = flight.ticks.overruns
+        sent = dict(backend.bridge.sent())
+    stamp = time.strftime("%Y%m%d_%H%M%S")
+    log_dir = log.write(Path(cfg.out_dir) / f"{cfg.name}-{stamp}")
+    summary = summarize(log_dir)
+    run_id = log_to_mlflow(log_dir, tracking_uri, cfg.name)
+    say(f"[deploy] flew in {time.perf_counter() - started:.0f} s wall; log {log_dir}; MLflow run {run_id}")
+    result = DeployResult(pre, True, log_dir, summary, run_id, sent=sent)
+    if compare:
+        result.gap = simulation_gap(cfg, task, team, summary)
+    return result
+
+
+def simulation_gap(cfg: DeployConfig, task: TaskConfig, team: Team, flown: dict[str, Any]) -> dict[str, Any]:
+    """The flown SUC/COL/AST beside the training simulator's evaluation of the same team.
+
+    The simulator plays ``max(500, flown episodes)`` episodes of the same learner and
+    partners (fixed members in the partner slots, or the zoo drawn per episode) on the
+    same task and horizon. Differences carry binomial standard errors (SUC, COL) or the
+    standard error of the mean (AST), the two samples being independent.
+    """
+    from atdrone.teams.evaluation import metrics, run_episodes
+
+    episodes = max(500, int(flown["episodes"]))
+    if cfg.partners.members:
+        partners = team.partners
+        fixed = np.arange(len(partners))
+        records = run_episodes(
+            team.learner, task, partners, episodes, seed=cfg.seed, sampler=lambda rng, n: np.tile(fixed, (n, 1))
+        )
+    else:
+        from atdrone.policies.zoo import load_zoo
+
+        records = run_episodes(team.learner, task, load_zoo(cfg.partners.zoo).policies(), episodes, seed=cfg.seed)
+    sim = metrics(records)
+    n_sim, n_fly = len(records), int(flown["episodes"])
+    sim_ast_sd = (
+        float(records.loc[records["success"], "length"].std(ddof=1)) if records["success"].sum() > 1 else math.nan
+    )
+    rows = {}
+    for m in ("SUC", "COL"):
+        a, b = flown[m] / 100, sim[m] / 100
+        se = math.sqrt(a * (1 - a) / max(n_fly, 1) + b * (1 - b) / n_sim) * 100
+        rows[m] = {"fleet": flown[m], "simulator": sim[m], "diff": flown[m] - sim[m], "se": se}
+    fly_ast_sd = float(flown.get("AST_std", math.nan))
+    n_succ_fly = max(1, round(n_fly * flown["SUC"] / 100))
+    n_succ_sim = max(1, int(records["success"].sum()))
+    se_ast = math.sqrt(fly_ast_sd**2 / n_succ_fly + sim_ast_sd**2 / n_succ_sim)
+    rows["AST"] = {"fleet": flown["AST"], "simulator": sim["AST"], "diff": flown["AST"] - sim["AST"], "se": se_ast}
+    return {"episodes": {"fleet": n_fly, "simulator": n_sim}, "metrics": rows}
+
+
+def format_gap(gap: dict[str, Any]) -> str:
+    """The gap to simulation as a table."""
+    n = gap["episodes"]
+    lines = [
+        f"gap to simulation (fleet: {n['fleet']} episodes; training simulator: {n['simulator']} episodes)",
+        "| metric | sim fleet | simulator | fleet - simulator |",
+        "|---|---|---|---|",
+    ]
+    for m, r in gap["metrics"].items():
+        lines.append(f"| {m} | {r['fleet']:.1f} | {r['simulator']:.1f} | {r['diff']:+.1f} +- {r['se']:.1f} |")
+    return "\n".join(lines)
