@@ -147,10 +147,15 @@ def test_one_link_lost_is_reported_and_the_others_land(tmp_path: Path, registry_
 
 def test_sigint_lands_everyone(tmp_path: Path, registry_member: tuple[str, str]) -> None:
     stop = StopRequest()
-    timer = threading.Timer(5.0, lambda: os.kill(os.getpid(), signal.SIGINT))
-    timer.start()
+    timer = threading.Timer(1.5, lambda: os.kill(os.getpid(), signal.SIGINT))  # 6 s of flight after arming
+
+    def say(message: str) -> None:
+        if "arming" in message:
+            timer.start()
+
+    cfg = load_deploy(sim_doc(tmp_path, registry_member, horizon=400))
     try:
-        result = fly(tmp_path, registry_member, horizon=400, stop=stop)
+        result = run_deploy(cfg, arm=True, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}", say=say, stop=stop)
     finally:
         timer.cancel()
     assert stop.signal == "SIGINT"

@@ -289,7 +289,7 @@ def run_deploy(
     stop: StopRequest | None = None,
 ) -> DeployResult:
     """The deploy job (see the module docstring). Nothing arms unless ``arm``."""
-    stop = stop or StopRequest()
+    stop = StopRequest() if stop is None else stop
     with stop.handling_signals():  # SIGINT / SIGTERM from here on: every drone lands
         return _deploy(cfg, arm, tracking_uri, compare, say, stop)
 
@@ -324,6 +324,9 @@ def _deploy(
             return DeployResult(pre, False, sent=dict(backend.bridge.sent()))
         if not arm:
             say("[deploy] dry run: nothing armed (pass --arm to fly)")
+            return DeployResult(pre, False, sent=dict(backend.bridge.sent()))
+        if stop:
+            say(f"[deploy] stopped ({stop.signal}) before arming: nothing armed")
             return DeployResult(pre, False, sent=dict(backend.bridge.sent()))
         say(f"[deploy] arming and flying {cfg.episodes} episode(s)")
         started = time.perf_counter()

@@ -156,7 +156,7 @@ class Flight:
         self.cfg, self.task, self.team = cfg, task, team
         self.bridge, self.mocap, self.clock, self.log = bridge, mocap, clock, log
         self.faults = faults or FaultClock()
-        self.stop = stop or StopRequest()
+        self.stop = StopRequest() if stop is None else stop
         self.arena = Arena.from_config(task)
         self.geometry: Geometry = self.arena.geometry
         self.dt = task.dt
