@@ -69,6 +69,22 @@ def end_states(frame: pd.DataFrame) -> dict[str, str]:
     return physical.groupby("drone")["state"].last().to_dict()
 
 
+# ---------------------------------------------------------------- the extra
+def test_the_core_imports_without_cflib_or_motioncapture() -> None:
+    """cflib is GPLv3 and optional: blocking both packages leaves the core and the deploy config importable."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['cflib'] = None; sys.modules['motioncapture'] = None\n"
+        "import atdrone.cli, atdrone.service.driver, atdrone.teams.evaluation, atdrone.deploy.job\n"
+        "from atdrone.deploy.config import load_deploy; load_deploy('sim_4p2e1o')\n"
+        "print('ok')"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
 # ---------------------------------------------------------------- config
 def test_config_errors_name_the_json_path(tmp_path: Path, registry_member: tuple[str, str]) -> None:
     doc = sim_doc(tmp_path, registry_member)

@@ -43,6 +43,18 @@ class Bridge(Protocol):
 
     def open(self) -> None: ...
 
+    @staticmethod
+    def _confirm(name: str, cf: Any, param: str, value: float, timeout: float = 3.0) -> None:
+        """Wait until the drone has acknowledged ``param`` = ``value`` (its write answer updates cflib's copy)."""
+        group, key = param.split(".")
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            seen = cf.param.values.get(group, {}).get(key)
+            if seen is not None and float(seen) == float(value):
+                return
+            time.sleep(0.01)
+        raise BridgeError(f"{name}: {param} not confirmed as {value} within {timeout:g} s")
+
     def close(self) -> None: ...
 
     def battery(self) -> dict[str, float]: ...
@@ -139,11 +151,25 @@ class CflibBridge:
         ):
             cf.param.set_value(param, value)
             self._sent["param"] += 1
+        for param, value in (("stabilizer.estimator", KALMAN), ("stabilizer.controller", MELLINGER)):
+            self._confirm(name, cf, param, value)
         log = LogConfig(name="battery", period_in_ms=100)
         log.add_variable("pm.vbat", "float")
         cf.log.add_config(log)
         log.data_received_cb.add_callback(lambda _ts, data, _cfg, n=name: self._vbat.__setitem__(n, data["pm.vbat"]))
         log.start()
+
+    @staticmethod
+    def _confirm(name: str, cf: Any, param: str, value: float, timeout: float = 3.0) -> None:
+        """Wait until the drone has acknowledged ``param`` = ``value`` (its write answer updates cflib's copy)."""
+        group, key = param.split(".")
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            seen = cf.param.values.get(group, {}).get(key)
+            if seen is not None and float(seen) == float(value):
+                return
+            time.sleep(0.01)
+        raise BridgeError(f"{name}: {param} not confirmed as {value} within {timeout:g} s")
 
     def close(self) -> None:
         """Close every link (cflib sends a zero-thrust setpoint as it closes)."""

@@ -314,7 +314,9 @@ def _deploy(
                 "clock_rate": backend.clock.rate,
             }
         )
-        flight = Flight(cfg, task, team, backend.bridge, backend.mocap, backend.clock, log, backend.faults, stop)
+        flight = Flight(
+            cfg, task, team, backend.bridge, backend.mocap, backend.clock, log, backend.faults, stop, progress=say
+        )
         say(f"[deploy] {cfg.name}: {cfg.backend} backend connected; preflight checks")
         pre = run_preflight(flight, cfg, task)
         say(pre.text())

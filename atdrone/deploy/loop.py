@@ -152,8 +152,10 @@ class Flight:
         log: FlightLog,
         faults: FaultClock | None = None,
         stop: StopRequest | None = None,
+        progress: Callable[[str], None] | None = None,
     ) -> None:
         self.cfg, self.task, self.team = cfg, task, team
+        self.progress = progress or (lambda _message: None)
         self.bridge, self.mocap, self.clock, self.log = bridge, mocap, clock, log
         self.faults = faults or FaultClock()
         self.stop = StopRequest() if stop is None else stop
@@ -325,6 +327,10 @@ class Flight:
             int(captured.sum()),
             float(ret),
             virtual_evaders=not self.evader_drones,
+        )
+        self.progress(
+            f"[deploy] episode {self.episode + 1}/{self.cfg.episodes}: {outcome} after {steps} steps, "
+            f"{int(captured.sum())}/{E} captured, {self.ticks.overruns} tick overruns so far"
         )
 
     def _reward(self, prev: np.ndarray, dist: np.ndarray, captured: np.ndarray, judged: Any) -> float:
