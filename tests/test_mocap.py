@@ -24,8 +24,8 @@ from atdrone.deploy.mocap import (
     MotionCaptureSource,
     Pose,
     SimMocap,
-    wrap_angle,
 )
+from atdrone.envs.kinematics import wrap_angle
 
 
 def _proper_axes() -> list[tuple[str, ...]]:

@@ -36,6 +36,7 @@ import numpy as np
 
 from atdrone.config import ConfigError, _check
 from atdrone.deploy.clock import Clock
+from atdrone.envs.kinematics import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -70,11 +71,6 @@ def _parse_axes(axes: Sequence[str]) -> tuple[np.ndarray | None, str | None]:
 
 def _axes_problem(axes: tuple[str, str, str]) -> str | None:
     return _parse_axes(axes)[1]
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
 
 
 def _quat_of_matrix(m: np.ndarray) -> np.ndarray:

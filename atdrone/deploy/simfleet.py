@@ -36,6 +36,7 @@ import numpy as np
 
 from atdrone.deploy import crtp
 from atdrone.deploy.clock import Clock
+from atdrone.envs.kinematics import wrap_angle
 
 GRAVITY = 9.81
 
@@ -206,8 +207,8 @@ class SimCrazyflie:
         if self.pos[2] < 0:
             self.pos[2], self.vel[2] = 0.0, max(0.0, self.vel[2])
         if yaw is not None:
-            err = (yaw - self.yaw + np.pi) % (2 * np.pi) - np.pi
-            self.yaw = float((self.yaw + err * min(1.0, dt / d.tau) + np.pi) % (2 * np.pi) - np.pi)
+            err = float(wrap_angle(np.array(yaw - self.yaw)))
+            self.yaw = float(wrap_angle(np.array(self.yaw + err * min(1.0, dt / d.tau))))
 
     def supervisor_bits(self) -> int:
         return (
