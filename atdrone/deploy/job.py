@@ -154,7 +154,12 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
 
             clock: Clock = ScaledClock(cfg.sim.clock_rate)
             fleet = stack.enter_context(
-                SimFleet(names, ground_positions(cfg, task, cfg.seed + 7919), clock, DroneDynamics(tau=cfg.sim.tau))
+                SimFleet(
+                    names,
+                    ground_positions(cfg, task, cfg.seed + 7919),
+                    clock,
+                    DroneDynamics(tau=cfg.sim.tau, battery_drain=cfg.sim.battery_drain),
+                )
             )
             truth = fleet.truth
             by_body = {d.rigid_body: d.name for d in cfg.drones}

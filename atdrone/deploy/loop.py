@@ -238,20 +238,34 @@ class Flight:
         return pos[0, : len(self.pursuers)], pos[0, len(self.pursuers) :]
 
     def _go_to_spawn(self, spawn_p: np.ndarray, spawn_e: np.ndarray) -> None:
+        """Fly every drone to its spawn position in three high-level legs on separate altitude layers.
+
+        Drone i climbs (or descends) to its own layer ``flight_height + i * transit_layer``,
+        flies there to above its spawn position, then descends to the flight height: the
+        straight legs of two drones never meet, because no two drones share a layer while
+        they move across the arena (the shield does not steer the high-level commander).
+        """
         targets = {n: spawn_p[i] for i, n in enumerate(self.pursuers)}
         targets.update({n: spawn_e[j] for j, n in enumerate(self.evader_drones)})
-        pos, _, _ = self.measured()
-        dist = max(
-            (float(np.hypot(*(pos[i, :2] - targets[n]))) for i, n in enumerate(self.names) if np.isfinite(pos[i, 0])),
-            default=0.0,
-        )
-        duration = max(1.0, dist / self.cfg.goto_speed)
         flying = [n for n in self.names if self.state[n] == "flying"]
         self.bridge.notify_stop(flying)
-        for n in flying:
-            x, y = targets[n]
-            self.bridge.go_to(n, np.array([x, y, self.cfg.flight_height]), math.pi / 2, duration)
-        self._transit(duration + 0.5)
+        pos, _, _ = self.measured()
+        h, gap = self.cfg.flight_height, self.cfg.transit_layer
+        layer = {n: h + gap * i for i, n in enumerate(self.names)}
+        here = {n: pos[i, :2] if np.isfinite(pos[i, :2]).all() else targets[n] for i, n in enumerate(self.names)}
+        climb = max(1.0, gap * (len(self.names) - 1) / 0.3)
+        dist = max((float(np.hypot(*(here[n] - targets[n]))) for n in flying), default=0.0)
+        legs = (
+            ({n: (*here[n], layer[n]) for n in flying}, climb),
+            ({n: (*targets[n], layer[n]) for n in flying}, max(1.0, dist / self.cfg.goto_speed)),
+            ({n: (*targets[n], h) for n in flying}, climb),
+        )
+        for goals, duration in legs:
+            for n, goal in goals.items():
+                self.bridge.go_to(n, np.array(goal), math.pi / 2, duration)
+            self._transit(duration + 0.3)
+            if self.aborted:
+                return
 
     def _fly_episode(self) -> None:
         spawn_p, spawn_e = self._spawn()
