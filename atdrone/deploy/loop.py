@@ -178,6 +178,7 @@ class Flight:
         self.ticks = Ticker(clock, self.dt)
         self.t0 = clock.now()
         self.prev_setpoint = np.full((len(self.names), 3), np.nan)
+        self._last_pose: tuple[float, np.ndarray] | None = None  # (clock time, positions) for the velocity estimate
         self.episode = -1
         self.aborted = ""
         self.notes: dict[str, list[str]] = {}  # fault notes for the next logged tick, per drone
@@ -386,7 +387,7 @@ class Flight:
             names=tuple(self.names),
             physical=self._physical(),
             pos=pos,
-            vel=np.full_like(pos, np.nan),
+            vel=self._velocity(pos),
             pose_age=age,
             setpoint=setpoints,
             prev_setpoint=self.prev_setpoint,
@@ -396,6 +397,14 @@ class Flight:
             stop_requested=bool(self.stop),
         )
         return shield(inp, self.shield_cfg)
+
+    def _velocity(self, pos: np.ndarray) -> np.ndarray:
+        """Velocities (D, 3) from the last two ticks' poses (NaN where unknown), for the shield's look-ahead."""
+        now, last = self.clock.now(), self._last_pose
+        self._last_pose = (now, pos.copy())
+        if last is None or now - last[0] <= 1e-6:
+            return np.full_like(pos, np.nan)
+        return (pos - last[1]) / (now - last[0])
 
     def _apply(self, decision: ShieldDecision, yaws: np.ndarray) -> str:
         """Send what the shield allows; return "shield" when it ends the episode (and the flight)."""
