@@ -103,6 +103,9 @@ def build_team(cfg: DeployConfig) -> tuple[Team, str]:
     from atdrone.policies.zoo import load_checkpoint, load_zoo, policy_from_spec
 
     path = member_checkpoint(cfg)
+    import torch
+
+    torch.set_num_threads(1)  # one small network per tick: extra threads only add latency beside cflib's threads
     learner = load_checkpoint(path)
     name = cfg.member.id or path.stem
     if cfg.partners.members:
