@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from atdrone.config import TASK_NAMES, ConfigError
-from atdrone.policies.zoo import PolicyError
+from atdrone.errors import UserError
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
 
@@ -432,7 +432,11 @@ COMMANDS: dict[str, Command] = {
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from atdrone import __version__
+
     parser = argparse.ArgumentParser(prog="atdrone", description="AT-Drone multi-drone pursuit benchmark.")
+    parser.add_argument("--version", action="version", version=f"atdrone {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for command in COMMANDS.values():
         command.add_parser(subparsers)
@@ -440,20 +444,36 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Parse ``argv`` (default: sys.argv[1:]), run the subcommand, return its exit code."""
+    """Parse ``argv`` (default: sys.argv[1:]), run the subcommand, return its exit code.
+
+    An error the user caused (:class:`atdrone.errors.UserError`: a bad config, a damaged
+    checkpoint, a refused run) or a file that cannot be read or written is one line on
+    stderr and exit code 2; anything else is a bug, one line and exit code 1. ``--debug``
+    lets either raise with its traceback.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return COMMANDS[args.command].run(args)
-    except ConfigError as exc:
-        print(f"atdrone {args.command}: error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        _error(args, "interrupted")
+        return 130
+    except (UserError, OSError) as exc:
+        if args.debug:
+            raise
+        _error(args, _one_line(exc))
         return EXIT_USAGE
-    except PolicyError as exc:  # a checkpoint that is missing, corrupted or does not fit
-        print(f"atdrone {args.command}: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except OSError as exc:  # an output file that cannot be written
-        print(f"atdrone {args.command}: error: {exc}", file=sys.stderr)
+    except Exception as exc:  # a bug: say what and where to look, not a page of traceback
+        if args.debug:
+            raise
+        _error(args, f"internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)")
         return 1
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line (KeyError's quoted argument unquoted)."""
+    text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+    return " ".join(text.split()) or type(exc).__name__
 
 
 if __name__ == "__main__":

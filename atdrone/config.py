@@ -20,11 +20,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from atdrone.errors import UserError
+
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 TASK_NAMES = ("4p2e1o", "4p2e3o", "4p2e5o", "4p3e5o")
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError, ValueError):
     """A configuration document is malformed; ``path`` names the offending field."""
 
     def __init__(self, path: str, message: str) -> None:

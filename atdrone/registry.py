@@ -41,6 +41,7 @@ from typing import Any
 
 import pandas as pd
 
+from atdrone.errors import UserError
 from atdrone.fileio import atomic_write, atomic_write_bytes
 
 SCHEMA_VERSION = 1
@@ -101,7 +102,7 @@ _JSON_COLUMNS = {
 }
 
 
-class RegistryError(ValueError):
+class RegistryError(UserError, ValueError):
     """A request the registry refuses: a duplicate id, a bad field, a file that is not a registry."""
 
 

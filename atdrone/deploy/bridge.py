@@ -29,10 +29,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from atdrone.errors import UserError
+
 MELLINGER, KALMAN = 2, 2
 
 
-class BridgeError(RuntimeError):
+class BridgeError(UserError, RuntimeError):
     """A drone cannot be reached or set up."""
 
 

@@ -43,12 +43,13 @@ from atdrone.deploy.preflight import (
     hover_and_turn,
     spawn_regions,
 )
+from atdrone.errors import UserError
 from atdrone.policies.base import Policy
 
 Say = Callable[[str], None]
 
 
-class DeployError(RuntimeError):
+class DeployError(UserError, RuntimeError):
     """The deploy job cannot go on: a failed preflight, a member that cannot be had."""
 
 

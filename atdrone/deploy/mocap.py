@@ -37,6 +37,7 @@ import numpy as np
 from atdrone.config import ConfigError, _check
 from atdrone.deploy.clock import Clock
 from atdrone.envs.kinematics import wrap_angle
+from atdrone.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,7 @@ _AXIS = re.compile(r"^([+-]?)([xyz])$")
 STARTUP_TIMEOUT = 20.0  # wall seconds for the reader process to start (imports), before connect_timeout
 
 
-class MocapError(RuntimeError):
+class MocapError(UserError, RuntimeError):
     """The motion-capture system cannot be reached or read."""
 
 

@@ -16,11 +16,12 @@ from typing import Any, Protocol, Self, runtime_checkable
 import torch
 from torch import nn
 
+from atdrone.errors import UserError
 from atdrone.models.history import DroneMemory
 from atdrone.models.networks import ActorCritic
 
 
-class CheckpointError(ValueError):
+class CheckpointError(UserError, ValueError):
     """A checkpoint file is corrupted, truncated or does not fit what it is loaded for."""
 
 

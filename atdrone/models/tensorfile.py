@@ -20,13 +20,14 @@ import torch
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
+from atdrone.errors import UserError
 from atdrone.fileio import atomic_write_bytes
 
 DOC_KEY = "atdrone"
 DIGEST_KEY = "sha256"
 
 
-class TensorFileError(ValueError):
+class TensorFileError(UserError, ValueError):
     """A tensor file is missing, damaged or not one of ours."""
 
 

@@ -17,9 +17,10 @@ import numpy as np
 
 from atdrone.envs.kinematics import turn_towards as turn_towards
 from atdrone.envs.observation import Poses
+from atdrone.errors import UserError
 
 
-class PolicyError(RuntimeError):
+class PolicyError(UserError, RuntimeError):
     """A policy cannot be had: an unknown name, a missing or unreadable checkpoint."""
 
 
