@@ -233,24 +233,36 @@ def _train_service(args: argparse.Namespace) -> int:
 def add_registry(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "registry",
-        help="query the population registry (members, cross-play, lineage, export)",
-        description="Read the population registry's sqlite file directly (whether or not Ray is running). "
-        "The file is --db, else $ATDRONE_REGISTRY, else ./registry.db.",
+        help="query the population registry (runs, members, cross-play, lineage, export)",
+        description="Read population registries (sqlite files) read-only, whether or not Ray is running. "
+        "The file is --db, else $ATDRONE_REGISTRY, else the registries under --runs-dir (runs/*/registry.db), "
+        "else ./registry.db. `runs` and `list` read every registry found; the other queries need exactly one.",
     )
-    db_help = "registry file (default: $ATDRONE_REGISTRY or ./registry.db)"
-    p.add_argument("--db", type=Path, default=None, help=db_help)
+    db_help = "registry file (default: $ATDRONE_REGISTRY, else found under --runs-dir)"
+    runs_help = "where to look for runs/*/registry.db without --db (default runs)"
+
+    def locations(q: argparse.ArgumentParser, db: Any, runs_dir: Any) -> None:
+        q.add_argument("--db", type=Path, default=db, help=db_help)
+        q.add_argument("--runs-dir", type=Path, default=runs_dir, help=runs_help)
+
+    locations(p, None, Path("runs"))
     sub = p.add_subparsers(dest="registry_command", metavar="QUERY", required=True)
 
     def query(name: str, help: str) -> argparse.ArgumentParser:
         q = sub.add_parser(name, help=help, description=help)
-        q.add_argument("--db", type=Path, default=argparse.SUPPRESS, help=db_help)  # also accepted after QUERY
+        locations(q, argparse.SUPPRESS, argparse.SUPPRESS)  # also accepted after QUERY
         return q
 
-    q = query("list", "the members, optionally filtered")
+    formats = ("table", "csv", "json")
+    q = query("runs", "the registries found: run, algorithm, task, generations, members, best member")
+    q.add_argument("--format", choices=formats, default="table", help="table (default), csv or json")
+    q = query("list", "the members, optionally filtered: a compact table fitted to the terminal")
     q.add_argument("--run", default=None, help="only this run")
     q.add_argument("--task", default=None, help="only this task")
     q.add_argument("--status", default=None, help="only this status (active, retired, missing)")
-    query("show", "every field of one member").add_argument("id", help="member id")
+    q.add_argument("--columns", default=None, help="comma-separated member fields or metric keys, e.g. id,zoo1/SUC")
+    q.add_argument("--format", choices=formats, default="table", help="table (default), csv or json (nothing cut)")
+    query("show", "every field of one member, in full").add_argument("id", help="member id")
     q = query("crossplay", "the member x member matrix of a metric, averaged over matches")
     q.add_argument("--task", default=None, help="only matches on this task")
     q.add_argument("--metric", default="SUC", help="SUC (default), COL, AST or REW")
@@ -264,36 +276,10 @@ def add_registry(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run_registry(args: argparse.Namespace) -> int:
-    import pandas as pd
+    """Answer one registry query; a refused one (RegistryError, a missing file) reaches :func:`main` as one line."""
+    from atdrone.registry_view import answer
 
-    from atdrone.registry import Registry, RegistryError, default_path
-
-    path = args.db if args.db is not None else default_path()
-    try:
-        registry = Registry(path, create=False)
-    except (FileNotFoundError, RegistryError) as exc:
-        print(f"atdrone registry: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    with registry, pd.option_context("display.width", 200, "display.max_colwidth", 60, "display.max_rows", None):
-        try:
-            if args.registry_command == "list":
-                frame = registry.members(run=args.run, task=args.task, status=args.status)
-                cols = ["id", "run", "algorithm", "generation", "task", "status", "parents", "metrics"]
-                print(frame[cols].to_string(index=False) if len(frame) else "(no members)")
-            elif args.registry_command == "show":
-                print(pd.Series(registry.member(args.id), dtype=object).to_string())
-            elif args.registry_command == "crossplay":
-                matrix = registry.crossplay(task=args.task, metric=args.metric)
-                print(matrix.to_string(float_format=lambda v: f"{v:.1f}") if len(matrix) else "(no matches)")
-            elif args.registry_command == "lineage":
-                print(registry.lineage(args.id).to_string(index=False))
-            else:
-                out = registry.export(args.out, format=args.format, table=args.table)
-                print(f"wrote {out} ({args.table}, {args.format})")
-        except (KeyError, RegistryError) as exc:
-            message = exc.args[0] if exc.args else exc
-            print(f"atdrone registry: error: {message}", file=sys.stderr)
-            return EXIT_USAGE
+    print(answer(args, warn=lambda message: print(f"atdrone registry: warning: {message}", file=sys.stderr)))
     return 0
 
 

@@ -8,7 +8,9 @@ pandas views answer the usual questions: the member table, the cross-play matrix
 member's lineage.
 
 Storage. sqlite in WAL mode, so readers (``atdrone registry ...``, a notebook) never
-block the writer and never see half a transaction. Each :class:`Registry` holds one
+block the writer and never see half a transaction. A reader (``create=False``) opens the
+file read-only (``mode=ro``): it changes nothing in it, refuses a file that is not a
+registry, and reads a registry it may not write. Each :class:`Registry` holds one
 connection (``check_same_thread=False``) guarded by a lock, so one object may be shared
 by threads; every write is one ``BEGIN IMMEDIATE`` transaction, so several Registry
 objects (or processes) on one file serialise their writes instead of losing them, and a
@@ -174,9 +176,10 @@ class Registry:
 
     Arguments:
         path: the sqlite file (default :func:`default_path`).
-        create: make the file and schema when missing; with ``False`` a missing file
-            raises FileNotFoundError and a file without the registry schema raises
-            RegistryError (what read-only tools such as the CLI want).
+        create: make the file and schema when missing (the writer, e.g. the Ray actor).
+            With ``False`` the file is opened read-only and never written: a missing file
+            raises FileNotFoundError; an empty, non-sqlite or foreign sqlite file raises
+            RegistryError; the write methods raise RegistryError (what the CLI wants).
 
     One object holds one connection and a lock, so it may be shared between threads;
     close it with :meth:`close` or use it as a context manager.
@@ -184,40 +187,69 @@ class Registry:
 
     def __init__(self, path: str | os.PathLike[str] | None = None, *, create: bool = True) -> None:
         self.path = Path(path) if path is not None else default_path()
-        if not create and not self.path.is_file():
-            raise FileNotFoundError(f"no registry at {self.path}")
+        self.read_only = not create
+        self._lock = threading.RLock()
         if create:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.RLock()
-        self._conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+            _check_header(self.path, empty_ok=True)
+            self._conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+        else:
+            self._conn = _connect_read_only(self.path)
         try:
-            self.journal_mode = str(self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]).lower()
-            self._init_schema(create)
+            if create:
+                self.journal_mode = str(self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]).lower()
+                self._init_schema()
+            else:
+                self.journal_mode = _journal_mode(self._conn, self.path)
+                self._check_schema()
         except BaseException:
             self._conn.close()
             raise
 
     # ------------------------------------------------------------ plumbing
-    def _init_schema(self, create: bool) -> None:
-        has_version = self._conn.execute(
-            "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'schema_version'"
-        ).fetchone()
-        if not has_version and not create:
-            raise RegistryError(f"{self.path} is not an atdrone registry (no schema_version table)")
+    def _init_schema(self) -> None:
+        """Create the tables when missing (the writer's path) and check the schema version."""
         with self._write() as conn:
             for statement in _SCHEMA:
                 conn.execute(statement)
             row = conn.execute("SELECT MAX(version) FROM schema_version").fetchone()
             if row[0] is None:
                 conn.execute("INSERT INTO schema_version (version) VALUES (?)", (SCHEMA_VERSION,))
-            elif row[0] > SCHEMA_VERSION:
-                raise RegistryError(
-                    f"{self.path} has registry schema v{row[0]}, this atdrone reads up to v{SCHEMA_VERSION}"
+            else:
+                self._check_version(row[0])
+
+    def _check_schema(self) -> None:
+        """Refuse, without writing, a file that lacks the registry's tables or has a newer schema."""
+        try:
+            with self._lock:
+                names = {r[0] for r in self._conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+                has_version = "schema_version" in names
+                version = (
+                    self._conn.execute("SELECT MAX(version) FROM schema_version").fetchone()[0] if has_version else None
                 )
+        except sqlite3.DatabaseError as exc:
+            raise RegistryError(f"{self.path} cannot be read as an atdrone registry: {exc}") from exc
+        if not has_version:
+            found = ", ".join(sorted(names)) or "none"
+            raise RegistryError(f"{self.path} is not an atdrone registry (no schema_version table; tables: {found})")
+        missing = [t for t in TABLES if t not in names]
+        if missing:
+            raise RegistryError(f"{self.path} is not a complete atdrone registry (no table {', '.join(missing)})")
+        self._check_version(version)
+
+    def _check_version(self, version: Any) -> None:
+        if not isinstance(version, int):
+            raise RegistryError(f"{self.path} has no valid registry schema version (got {version!r})")
+        if version > SCHEMA_VERSION:
+            raise RegistryError(
+                f"{self.path} has registry schema v{version}, this atdrone reads up to v{SCHEMA_VERSION}"
+            )
 
     @contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
         """One write transaction: taken at once (BEGIN IMMEDIATE), committed or rolled back whole."""
+        if self.read_only:
+            raise RegistryError(f"the registry at {self.path} was opened read-only (create=False)")
         with self._lock, self._conn:
             self._conn.execute("BEGIN IMMEDIATE")
             yield self._conn
@@ -226,11 +258,16 @@ class Registry:
         with self._lock:
             return pd.read_sql_query(sql, self._conn, params=list(params))
 
-    @staticmethod
-    def _decode(frame: pd.DataFrame, table: str) -> pd.DataFrame:
+    def _decode(self, frame: pd.DataFrame, table: str) -> pd.DataFrame:
+        """Decode the JSON columns of rows of ``table``; a malformed row raises RegistryError naming it."""
+        keys = _row_keys(frame, table)
         for col in _JSON_COLUMNS[table]:
-            frame[col] = [json.loads(v) for v in frame[col]]
+            frame[col] = [self._json(text, table, key, col) for key, text in zip(keys, frame[col], strict=True)]
         return frame
+
+    def _json(self, text: Any, table: str, key: str, column: str) -> Any:
+        """One JSON cell decoded and checked for its type (list of ids, object, list of ints)."""
+        return _load_json(text, f"{self.path}: {table} row {key}: {column}", column)
 
     @staticmethod
     def _where(**filters: Any) -> tuple[str, list[Any]]:
@@ -351,9 +388,11 @@ class Registry:
                 raise KeyError(f"no member {member_id!r} in the registry at {self.path}")
             changes: dict[str, Any] = {}
             if metrics is not None:
-                changes["metrics"] = _dumps({**json.loads(row[0]), **_check_dict("metrics", metrics)})
+                old_metrics = self._json(row[0], "members", repr(member_id), "metrics")
+                changes["metrics"] = _dumps({**old_metrics, **_check_dict("metrics", metrics)})
             if tags is not None:
-                changes["tags"] = _dumps({**json.loads(row[1]), **_check_dict("tags", tags)})
+                old_tags = self._json(row[1], "members", repr(member_id), "tags")
+                changes["tags"] = _dumps({**old_tags, **_check_dict("tags", tags)})
             for key, value in (("status", status), ("mlflow_run_id", mlflow_run_id), ("sha256", sha256)):
                 if value is not None:
                     changes[key] = value
@@ -373,6 +412,8 @@ class Registry:
 
     def members(self, run: str | None = None, task: str | None = None, status: str | None = None) -> pd.DataFrame:
         """The members (in registration order), optionally filtered by run, task and status."""
+        if status is not None and status not in STATUSES:
+            raise RegistryError(f"status must be one of {', '.join(STATUSES)}, got {status!r}")
         where, params = self._where(run=run, task=task, status=status)
         return self._decode(self._query(f"SELECT * FROM members{where} ORDER BY rowid", params), "members")
 
@@ -440,7 +481,8 @@ class Registry:
             row = conn.execute("SELECT info FROM generations WHERE run = ? AND idx = ?", (run, idx)).fetchone()
             if row is None:
                 raise RegistryError(f"generation {idx} of run {run!r} was never started")
-            merged = {**json.loads(row[0]), **_check_dict("info", info or {})}
+            old_info = self._json(row[0], "generations", f"{run}/{idx}", "info")
+            merged = {**old_info, **_check_dict("info", info or {})}
             conn.execute(
                 "UPDATE generations SET finished = ?, info = ? WHERE run = ? AND idx = ?",
                 (_now(), _dumps(merged), run, idx),
@@ -525,7 +567,7 @@ class Registry:
             rows = self._query(f"SELECT id, parents FROM members WHERE id IN ({marks})", frontier)
             nxt = []
             for child, parents in zip(rows["id"], rows["parents"], strict=True):
-                for parent in json.loads(parents):
+                for parent in self._json(parents, "members", repr(child), "parents"):
                     if parent not in depth:
                         depth[parent] = depth[child] + 1
                         nxt.append(parent)
@@ -556,6 +598,106 @@ class Registry:
         else:
             atomic_write(out, lambda f: frame.to_parquet(f, index=False))
         return out
+
+
+SQLITE_MAGIC = b"SQLite format 3\x00"
+_JSON_TYPES: dict[str, tuple[type, str]] = {
+    "parents": (list, "list of member ids"),
+    "team": (list, "list of member ids"),
+    "seeds": (list, "list of integers"),
+    "tags": (dict, "object"),
+    "metrics": (dict, "object"),
+    "info": (dict, "object"),
+}
+
+
+def _check_header(path: Path, *, empty_ok: bool) -> None:
+    """Refuse a file that is not a sqlite database (and, unless ``empty_ok``, an empty file)."""
+    if not path.is_file():
+        return
+    with path.open("rb") as f:
+        head = f.read(len(SQLITE_MAGIC))
+    if not head and not empty_ok:
+        raise RegistryError(f"{path} is an empty file, not an atdrone registry")
+    if head and head != SQLITE_MAGIC:
+        raise RegistryError(f"{path} is not a sqlite database, so not an atdrone registry")
+
+
+def _connect_read_only(path: Path) -> sqlite3.Connection:
+    """A read-only connection (``mode=ro``) to an existing sqlite file; it never writes the file.
+
+    A WAL-mode file in a folder the reader may not write (so no ``-shm`` can be made) is
+    opened ``immutable`` instead, provided no ``-wal`` file holds commits not yet merged
+    (none can: nobody could write one there).
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"no registry at {path}")
+    _check_header(path, empty_ok=False)
+    uri = path.resolve().as_uri() + "?mode=ro"
+    try:
+        return _probe(uri)
+    except sqlite3.OperationalError as exc:
+        if not _is_wal(path) or _wal_has_data(path):
+            raise RegistryError(f"cannot read the registry at {path}: {exc}") from exc
+        first = exc
+    except sqlite3.DatabaseError as exc:
+        raise RegistryError(f"{path} cannot be read as an atdrone registry: {exc}") from exc
+    try:
+        return _probe(uri + "&immutable=1")
+    except sqlite3.DatabaseError as exc:
+        raise RegistryError(f"cannot read the registry at {path}: {first}") from exc
+
+
+def _probe(uri: str) -> sqlite3.Connection:
+    """Connect to ``uri`` and read the schema once (sqlite opens lazily), closing it on failure."""
+    conn = sqlite3.connect(uri, uri=True, timeout=30.0, isolation_level=None, check_same_thread=False)
+    try:
+        conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()
+    except BaseException:
+        conn.close()
+        raise
+    return conn
+
+
+def _is_wal(path: Path) -> bool:
+    """Whether the file's header says WAL mode (bytes 18 and 19 are 2)."""
+    with path.open("rb") as f:
+        header = f.read(20)
+    return len(header) == 20 and header[18] == 2
+
+
+def _wal_has_data(path: Path) -> bool:
+    wal = path.with_name(path.name + "-wal")
+    return wal.is_file() and wal.stat().st_size > 0
+
+
+def _journal_mode(conn: sqlite3.Connection, path: Path) -> str:
+    """The journal mode as stored, read without changing it (an immutable connection reports none)."""
+    return "wal" if _is_wal(path) else str(conn.execute("PRAGMA journal_mode").fetchone()[0]).lower()
+
+
+def _row_keys(frame: pd.DataFrame, table: str) -> list[str]:
+    """How error messages name the rows of ``table``: member id, match id, ``run/idx``."""
+    if table == "generations":
+        return [f"{run}/{idx}" for run, idx in zip(frame["run"], frame["idx"], strict=True)]
+    return [repr(key) for key in frame["id"]]
+
+
+def _load_json(text: Any, where: str, column: str) -> Any:
+    """Decode one JSON column and check its type, or raise RegistryError naming ``where``."""
+    if not isinstance(text, str):
+        raise RegistryError(f"malformed registry row: {where} is {text!r}, not JSON text")
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise RegistryError(f"malformed registry row: {where} is not valid JSON ({exc}): {text[:60]!r}") from exc
+    kind, name = _JSON_TYPES[column]
+    items_ok = not isinstance(value, list) or all(
+        isinstance(v, int) if column == "seeds" else isinstance(v, str) for v in value
+    )
+    if not isinstance(value, kind) or not items_ok:
+        raise RegistryError(f"malformed registry row: {where} is not a JSON {name}: {text[:60]!r}")
+    return value
 
 
 def _isnull(value: Any) -> bool:

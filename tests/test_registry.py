@@ -335,7 +335,7 @@ def test_cli_list_show_crossplay_lineage(
     assert capsys.readouterr().out.strip() == "(no members)"
     assert main(["registry", "--db", db, "show", child]) == 0
     out = capsys.readouterr().out
-    assert "parents" in out and "[a, b]" in out and "r2" in out
+    assert "parents: a, b\n" in out and "run: r2\n" in out
     assert main(["registry", "--db", db, "crossplay", "--task", TASK]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split() == ["partner", "a", "b", "c"] and lines[2].split() == ["a", "50.0", "60.0", "90.0"]
@@ -368,6 +368,343 @@ def test_cli_reports_unknown_ids_and_missing_files_in_one_line(
     assert not missing.exists()
     assert main(["registry", "--db", str(registry.path), "crossplay", "--metric", "WIN"]) == 2
     assert "metric must be one of" in capsys.readouterr().err
+
+
+# ------------------------------------------------------- read-only reader
+def _raw(path: Path, *statements: str) -> None:
+    """Run SQL on a file directly (to make foreign, rollback-mode or damaged files)."""
+    conn = sqlite3.connect(path)
+    try:
+        for statement in statements:
+            conn.execute(statement)
+        conn.commit()
+    finally:
+        conn.close()
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_the_reader_refuses_an_empty_or_foreign_sqlite_file_and_leaves_it_byte_identical(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for name, make in (("empty", lambda p: p.write_bytes(b"")), ("foreign", lambda p: _raw(p, "CREATE TABLE foo (x)"))):
+        folder = tmp_path / name
+        folder.mkdir()
+        path = folder / "x.db"
+        make(path)
+        before = _files(folder)
+        with pytest.raises(RegistryError, match="not an atdrone registry"):
+            Registry(path, create=False)
+        assert main(["registry", "--db", str(path), "list"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "not an atdrone registry" in err, err
+        assert _files(folder) == before  # no WAL switch, no schema, no -wal/-shm files
+
+
+def _skip_unless_permissions_apply(folder: Path) -> None:
+    """Root (with its usual capabilities) writes anywhere, so a read-only folder proves nothing."""
+    probe = folder / ".probe"
+    try:
+        probe.write_bytes(b"")
+    except PermissionError:
+        return
+    probe.unlink()
+    if os.geteuid() == 0:
+        pytest.skip("running as root: file permissions are not enforced")
+    raise AssertionError(f"{folder} is writable after chmod 555")
+
+
+@pytest.mark.parametrize("journal", ["wal", "delete"])
+def test_a_registry_it_may_not_write_can_be_listed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], journal: str
+) -> None:
+    folder = tmp_path / "ro"
+    path = folder / "registry.db"
+    with Registry(path) as reg:
+        _add(reg, member_id="m1", metrics={"zoo1/SUC": 40.0})
+    if journal == "delete":
+        _raw(path, "PRAGMA journal_mode=DELETE")
+    path.chmod(0o444)
+    folder.chmod(0o555)
+    try:
+        _skip_unless_permissions_apply(folder)
+        with Registry(path, create=False) as reader:
+            assert reader.members()["id"].tolist() == ["m1"] and reader.journal_mode == journal
+        assert main(["registry", "--db", str(path), "list"]) == 0
+        out = capsys.readouterr().out
+        assert out.splitlines()[1].split()[0] == "m1" and "40" in out
+    finally:
+        folder.chmod(0o755)
+        path.chmod(0o644)
+
+
+def test_reading_keeps_a_rollback_mode_registry_in_rollback_mode(tmp_path: Path) -> None:
+    path = tmp_path / "registry.db"
+    with Registry(path) as reg:
+        _add(reg, member_id="m1")
+    _raw(path, "PRAGMA journal_mode=DELETE")
+    before = path.read_bytes()
+    with Registry(path, create=False) as reader:
+        assert reader.journal_mode == "delete" and reader.member("m1")["run"] == "hola-quick"
+    assert main(["registry", "--db", str(path), "list"]) == 0
+    conn = sqlite3.connect(path)
+    try:
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "delete"
+    finally:
+        conn.close()
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["registry.db"]
+
+
+def test_a_reader_refuses_to_write_and_the_writer_still_writes(tmp_path: Path) -> None:
+    path = tmp_path / "registry.db"
+    with Registry(path) as writer:
+        _add(writer, member_id="m1")
+        with Registry(path, create=False) as reader:
+            with pytest.raises(RegistryError, match="read-only"):
+                _add(reader, member_id="m2")
+            with pytest.raises(RegistryError, match="read-only"):
+                reader.update_member("m1", status="retired")
+            _add(writer, member_id="m3")  # the writer goes on while a reader is open
+            assert reader.members()["id"].tolist() == ["m1", "m3"]
+        assert writer.journal_mode == "wal"
+
+
+def test_a_file_that_is_not_sqlite_is_refused_in_one_line_and_kept(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "notes.txt"
+    path.write_text("these are my notes, not a database\n" * 10)
+    before = path.read_bytes()
+    assert main(["registry", "--db", str(path), "list"]) == 2
+    assert (
+        capsys.readouterr().err
+        == f"atdrone registry: error: {path} is not a sqlite database, so not an atdrone registry\n"
+    )
+    with pytest.raises(RegistryError, match="not a sqlite database"):
+        Registry(path)  # the writer does not clobber it either
+    assert path.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    ("column", "text", "query", "expected"),
+    [
+        ("metrics", "not json {", "list", "metrics is not valid JSON"),
+        ("parents", '"a"', "show", "parents is not a JSON list of member ids"),
+        ("tags", "[1, 2]", "list", "tags is not a JSON object"),
+    ],
+)
+def test_a_malformed_row_is_a_one_line_error_naming_the_row(
+    registry: Registry, capsys: pytest.CaptureFixture[str], column: str, text: str, query: str, expected: str
+) -> None:
+    _add(registry, member_id="good")
+    _add(registry, member_id="bad")
+    _raw(registry.path, f"UPDATE members SET {column} = '{text}' WHERE id = 'bad'")
+    with pytest.raises(RegistryError, match=f"members row 'bad': {expected}"):
+        registry.members()
+    argv = ["registry", "--db", str(registry.path), query] + (["bad"] if query == "show" else [])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert (
+        err.count("\n") == 1 and err.startswith("atdrone registry: error: malformed registry row") and expected in err
+    )
+
+
+def test_list_refuses_an_unknown_status_in_one_line(registry: Registry, capsys: pytest.CaptureFixture[str]) -> None:
+    _add(registry)
+    assert main(["registry", "--db", str(registry.path), "list", "--status", "bogus"]) == 2
+    assert capsys.readouterr().err == (
+        "atdrone registry: error: status must be one of active, retired, missing, got 'bogus'\n"
+    )
+    with pytest.raises(RegistryError, match="status must be one of"):
+        registry.members(status="bogus")
+
+
+# ------------------------------------------------------------ list and show
+LONG_CHECKPOINT = "/data/atdrone/runs/hola_quick_with_a_long_name/checkpoints/generation_0003/" + "x" * 120 + ".pt"
+
+
+def _population(reg: Registry, run: str = "hola-quick") -> list[str]:
+    """Three members with 200 training metrics each, eta, and zoo1/zoo2 SUC/COL on two of them."""
+    train = {f"train/metric_{i:03d}": i / 7 for i in range(200)}
+    first = _add(reg, 0, member_id=f"{run}-g0-0", run=run, metrics={**train, "eta": 0.25})
+    second = _add(reg, 0, member_id=f"{run}-g0-1", run=run, metrics=train)
+    child = _add(
+        reg,
+        1,
+        (first, second),
+        member_id=f"{run}-g1-0",
+        run=run,
+        checkpoint=LONG_CHECKPOINT,
+        sha256="0123456789abcdef" * 4,
+        metrics=train,
+    )
+    reg.update_member(first, metrics={"zoo1/SUC": 20.5, "zoo1/COL": 70.0, "zoo2/SUC": 11.0})
+    reg.update_member(child, metrics={"zoo1/SUC": 31.25, "zoo1/COL": 60.0, "zoo2/SUC": 15.0, "zoo2/COL": 55.5})
+    return [first, second, child]
+
+
+def test_list_is_a_compact_table_that_fits_the_terminal(
+    registry: Registry, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    ids = _population(registry)
+    monkeypatch.setenv("COLUMNS", "140")
+    assert main(["registry", "--db", str(registry.path), "list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    header = ["id", "run", "algorithm", "generation", "status", "parents", "eta"]
+    assert lines[0].split() == [*header, "zoo1/SUC", "zoo1/COL", "zoo2/SUC", "zoo2/COL"]
+    assert len(lines) == 4 and all(len(line) <= 140 for line in lines)
+    assert [line.split()[0] for line in lines[1:]] == ids
+    assert lines[1].split()[6:] == ["0.25", "20.5", "70", "11", "-"]
+    assert lines[3].split()[5:] == [f"{ids[0]},{ids[1]}", "-", "31.25", "60", "15", "55.5"]
+    assert "train/" not in "\n".join(lines)
+
+    monkeypatch.setenv("COLUMNS", "60")
+    assert main(["registry", "--db", str(registry.path), "list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert all(len(line) <= 60 for line in lines), lines
+    assert [line.split()[0] for line in lines[1:4]] == ids  # ids are never cut
+    assert lines[-1] == "(+6 columns: use --columns or --format csv)"
+
+
+def test_list_columns_and_formats_give_every_value_in_full(
+    registry: Registry, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import csv
+    import io
+
+    ids = _population(registry)
+    monkeypatch.setenv("COLUMNS", "40")
+    base = ["registry", "--db", str(registry.path), "list", "--columns", "id,checkpoint,zoo1/SUC,parents"]
+    assert main([*base, "--format", "csv"]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert [r["id"] for r in rows] == ids and rows[2]["checkpoint"] == LONG_CHECKPOINT
+    assert rows[0]["zoo1/SUC"] == "20.5" and rows[1]["zoo1/SUC"] == "" and json.loads(rows[2]["parents"]) == ids[:2]
+    assert main([*base, "--format", "json"]) == 0
+    records = json.loads(capsys.readouterr().out)
+    assert list(records[2]) == ["id", "checkpoint", "zoo1/SUC", "parents"]
+    assert records[2] == {"id": ids[2], "checkpoint": LONG_CHECKPOINT, "zoo1/SUC": 31.25, "parents": ids[:2]}
+    assert records[1]["zoo1/SUC"] is None
+    assert main(["registry", "--db", str(registry.path), "list", "--columns", "id,wins"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown column wins" in err
+
+
+def test_show_prints_every_field_in_full(registry: Registry, capsys: pytest.CaptureFixture[str]) -> None:
+    ids = _population(registry)
+    registry.update_member(ids[2], tags={"role": "learner"})
+    assert main(["registry", "--db", str(registry.path), "show", ids[2]]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert f"checkpoint: {LONG_CHECKPOINT}" in lines and f"sha256: {'0123456789abcdef' * 4}" in lines
+    assert f"parents: {ids[0]}, {ids[1]}" in lines and "mlflow_run_id: (none)" in lines
+    assert lines[lines.index("tags:") + 1] == "  role: learner"
+    start = lines.index("metrics:") + 1
+    metric_lines = lines[start : start + 204]
+    assert [line.split(": ")[0].strip() for line in metric_lines] == sorted(registry.member(ids[2])["metrics"])
+    assert "  zoo1/SUC: 31.25" in metric_lines and f"  train/metric_001: {1 / 7}" in metric_lines
+
+
+# ---------------------------------------------------------------- discovery
+def _runs_folder(root: Path) -> tuple[Path, Path]:
+    """runs/hola_quick (zoo metrics, two finished generations) and runs/sp_base (none): two registries."""
+    hola, sp = root / "runs" / "hola_quick" / "registry.db", root / "runs" / "sp_base" / "registry.db"
+    with Registry(hola) as reg:
+        for idx in (0, 1, 2):
+            reg.start_generation("hola_quick", idx)
+        reg.finish_generation("hola_quick", 0)
+        reg.finish_generation("hola_quick", 1)
+        _population(reg, run="hola_quick")
+    with Registry(sp) as reg:
+        _add(reg, 0, member_id="sp-g0-0", run="sp_base", algorithm="sp", task="4p2e1o")
+        _add(reg, 1, ("sp-g0-0",), member_id="sp-g1-0", run="sp_base", algorithm="sp", task="4p2e1o")
+        reg.start_generation("sp_base", 0)
+        reg.finish_generation("sp_base", 0)
+    return hola, sp
+
+
+@pytest.fixture
+def in_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Work in tmp_path with no $ATDRONE_REGISTRY and no terminal width limit."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ATDRONE_REGISTRY", raising=False)
+    monkeypatch.delenv("COLUMNS", raising=False)
+    return tmp_path
+
+
+def test_runs_lists_the_registries_under_runs_with_their_best_member(
+    in_tmp: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    hola, sp = _runs_folder(in_tmp)
+    assert main(["registry", "runs"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["run", "algorithm", "task", "generations", "members", "best", "best_by", "registry"]
+    hola, sp = hola.relative_to(in_tmp), sp.relative_to(in_tmp)
+    assert lines[1].split() == ["hola_quick", "hola", TASK, "2", "3", "hola_quick-g1-0", "zoo1/SUC", "31.25", str(hola)]
+    assert lines[2].split() == ["sp_base", "sp", "4p2e1o", "1", "2", "sp-g1-0", "last", "member", str(sp)]
+    assert main(["registry", "runs", "--format", "json", "--runs-dir", str(in_tmp / "runs")]) == 0
+    records = json.loads(capsys.readouterr().out)
+    assert [(r["run"], r["generations"], r["members"], r["best"]) for r in records] == [
+        ("hola_quick", 2, 3, "hola_quick-g1-0"),
+        ("sp_base", 1, 2, "sp-g1-0"),
+    ]
+
+
+def test_without_db_list_reads_every_registry_and_the_others_need_one(
+    in_tmp: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    hola, sp = _runs_folder(in_tmp)
+    assert main(["registry", "list"]) == 0
+    rows = [line.split()[:2] for line in capsys.readouterr().out.splitlines()[1:]]
+    assert [run for _, run in rows] == ["hola_quick"] * 3 + ["sp_base"] * 2
+    for argv in (["show", "sp-g0-0"], ["crossplay"], ["lineage", "sp-g1-0"], ["export", "--out", "m.csv"]):
+        assert main(["registry", *argv]) == 2
+        assert capsys.readouterr().err == (
+            f"atdrone registry: error: several registries under runs/: pass --db ({hola.relative_to(in_tmp)}, "
+            f"{sp.relative_to(in_tmp)})\n"
+        )
+    assert main(["registry", "show", "sp-g0-0", "--db", str(sp)]) == 0
+    assert "algorithm: sp" in capsys.readouterr().out
+    assert not (in_tmp / "m.csv").exists()
+
+
+def test_without_db_one_registry_is_used_and_none_is_a_clear_error(
+    in_tmp: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert main(["registry", "list"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--db" in err and "`atdrone registry runs`" in err
+    assert main(["registry", "runs"]) == 0
+    assert capsys.readouterr().out.startswith("(no registries under runs/")
+    with Registry(in_tmp / "runs" / "only" / "registry.db") as reg:
+        _add(reg, member_id="m1", run="only")
+    assert main(["registry", "show", "m1"]) == 0
+    assert "run: only" in capsys.readouterr().out
+    assert main(["registry", "lineage", "m1"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].split()[0] == "m1"
+    elsewhere = in_tmp / "elsewhere.db"
+    with Registry(elsewhere) as reg:
+        _add(reg, member_id="env-member")
+    monkeypatch.setenv("ATDRONE_REGISTRY", str(elsewhere))  # the environment wins over discovery
+    assert main(["registry", "list"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].split()[0] == "env-member"
+
+
+def test_list_over_several_registries_skips_an_unreadable_one_with_a_warning(
+    in_tmp: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _runs_folder(in_tmp)
+    broken = in_tmp / "runs" / "broken" / "registry.db"
+    broken.parent.mkdir()
+    broken.write_text("not sqlite")
+    assert main(["registry", "list"]) == 0
+    captured = capsys.readouterr()
+    assert len(captured.out.splitlines()) == 6
+    assert captured.err == (
+        "atdrone registry: warning: skipped runs/broken/registry.db: "
+        "runs/broken/registry.db is not a sqlite database, so not an atdrone registry\n"
+    )
 
 
 # ---------------------------------------------------------------------- Ray

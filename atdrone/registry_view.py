@@ -1,0 +1,401 @@
+"""What ``atdrone registry`` prints, and which registry files it reads.
+
+Discovery. A query reads ``--db``, else ``$ATDRONE_REGISTRY``, else the registries of
+the runs under ``--runs-dir`` (``runs/*/registry.db``, where ``atdrone train`` writes
+them), else ``./registry.db`` when it exists. ``runs`` summarises every registry found
+and ``list`` lists the members of all of them (the run column tells them apart); the
+other queries need exactly one and otherwise name the candidates.
+
+Formatting. ``list`` is a compact table (id, run, algorithm, generation, status,
+parents, eta and the zoo SUC/COL metrics present) cut to the terminal's width, or CSV
+or JSON with nothing cut; ``--columns`` picks member fields and metric keys. ``show``
+prints every field of a member in full, one ``key: value`` line each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import shutil
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from atdrone.registry import DEFAULT_PATH, ENV_VAR, Registry, RegistryError
+
+RUNS_DIR = Path("runs")
+REGISTRY_GLOB = "*/registry.db"
+FORMATS = ("table", "csv", "json")
+FIELDS = (
+    "id",
+    "run",
+    "algorithm",
+    "generation",
+    "task",
+    "status",
+    "parents",
+    "checkpoint",
+    "sha256",
+    "mlflow_run_id",
+    "created",
+)
+DEFAULT_FIELDS = ("id", "run", "algorithm", "generation", "status", "parents")
+RUN_COLUMNS = ("run", "algorithm", "task", "generations", "members", "best", "best_by", "registry")
+_ZOO_METRIC = re.compile(r"^(?!(?:train|eval|pop|perf)/)(?P<zoo>.+)/(?P<metric>SUC|COL)$")
+_KEEP_WHOLE = frozenset({"id", "generation", "status"})  # never cut to fit the terminal
+_GAP = "  "
+
+Warn = Callable[[str], None]
+
+
+# ----------------------------------------------------------------- discovery
+def find_registries(runs_dir: Path) -> list[Path]:
+    """The registry files of the runs under ``runs_dir`` (``*/registry.db``), sorted."""
+    return sorted(p for p in runs_dir.glob(REGISTRY_GLOB) if p.is_file())
+
+
+def locate(db: Path | None, runs_dir: Path) -> list[Path]:
+    """The registries a query reads: ``db``, else ``$ATDRONE_REGISTRY``, else those found (maybe none)."""
+    if db is not None:
+        return [db]
+    if os.environ.get(ENV_VAR):
+        return [Path(os.environ[ENV_VAR])]
+    found = find_registries(runs_dir)
+    if not found and Path(DEFAULT_PATH).is_file():
+        found = [Path(DEFAULT_PATH)]
+    return found
+
+
+def locate_one(db: Path | None, runs_dir: Path) -> Path:
+    """The one registry a query about one member or matrix reads; RegistryError when none or several."""
+    paths = locate(db, runs_dir)
+    if not paths:
+        raise RegistryError(_none_found(runs_dir))
+    if len(paths) > 1:
+        raise RegistryError(f"several registries under {_dir(runs_dir)}: pass --db ({', '.join(map(str, paths))})")
+    return paths[0]
+
+
+def _none_found(runs_dir: Path) -> str:
+    return (
+        f"no registry found (none at {_dir(runs_dir)}{REGISTRY_GLOB}, no ./{DEFAULT_PATH}): pass --db FILE "
+        "or --runs-dir DIR; `atdrone registry runs` lists the registries found"
+    )
+
+
+def _dir(path: Path) -> str:
+    return str(path).rstrip("/") + "/"
+
+
+@contextmanager
+def _open(path: Path) -> Iterator[Registry]:
+    with Registry(path, create=False) as registry:
+        yield registry
+
+
+def _each(paths: Sequence[Path], query: Callable[[Registry], Any], warn: Warn) -> list[Any]:
+    """``query`` on each registry; with several, one that cannot be read is skipped with a warning."""
+    answers = []
+    for path in paths:
+        try:
+            with _open(path) as registry:
+                answers.append(query(registry))
+        except (RegistryError, OSError) as exc:
+            if len(paths) == 1:
+                raise
+            warn(f"skipped {path}: {exc}")
+    return answers
+
+
+# ------------------------------------------------------------------- members
+def zoo_metric_keys(metrics: Sequence[dict[str, Any]]) -> list[str]:
+    """The zoo evaluation metric keys present (``zoo1/SUC``, ``zoo1/COL``, ...), by zoo then SUC before COL."""
+    keys = {k for m in metrics for k in m if _ZOO_METRIC.match(k)}
+    return sorted(keys, key=lambda k: (k.rsplit("/", 1)[0], k.endswith("/COL")))
+
+
+def default_columns(frame: pd.DataFrame) -> list[str]:
+    """``list``'s columns: the short member fields, eta when some member has it, the zoo SUC/COL metrics."""
+    metrics = list(frame["metrics"])
+    eta = ["eta"] if any("eta" in m for m in metrics) else []
+    return [*DEFAULT_FIELDS, *eta, *zoo_metric_keys(metrics)]
+
+
+def parse_columns(text: str | None) -> list[str] | None:
+    """``--columns a,b,c`` as a list (None when not given); an empty list is refused."""
+    if text is None:
+        return None
+    columns = [c.strip() for c in text.split(",") if c.strip()]
+    if not columns:
+        raise RegistryError("--columns needs at least one column name, e.g. --columns id,zoo1/SUC")
+    return columns
+
+
+def member_table(frame: pd.DataFrame, columns: Sequence[str] | None = None) -> pd.DataFrame:
+    """The members as one row each with ``columns`` (member fields or metric keys; default :func:`default_columns`)."""
+    chosen = list(columns) if columns is not None else default_columns(frame)
+    known = {k for m in frame["metrics"] for k in m}
+    unknown = [c for c in chosen if c not in FIELDS and c not in known]
+    if unknown:
+        metric_keys = ", ".join(sorted(known)) or "none"
+        raise RegistryError(
+            f"unknown column {', '.join(unknown)}: choose member fields ({', '.join(FIELDS)}) "
+            f"or metric keys ({metric_keys})"
+        )
+    data = {c: list(frame[c]) if c in FIELDS else [m.get(c) for m in frame["metrics"]] for c in chosen}
+    return pd.DataFrame(data, columns=chosen)
+
+
+def best_member(frame: pd.DataFrame) -> tuple[str, str]:
+    """The member with the highest zoo SUC metric (and which), else the last registered one."""
+    best: tuple[float, str, str] | None = None
+    for mid, metrics in zip(frame["id"], frame["metrics"], strict=True):
+        for key in zoo_metric_keys([metrics]):
+            value = metrics[key]
+            if key.endswith("/SUC") and _is_number(value) and (best is None or value > best[0]):
+                best = (float(value), mid, f"{key} {_cell(value)}")
+    if best is not None:
+        return best[1], best[2]
+    return (str(frame["id"].iloc[-1]), "last member") if len(frame) else ("-", "")
+
+
+def run_summaries(registry: Registry) -> list[dict[str, Any]]:
+    """One row per run in a registry: algorithm, task, generations completed, members and best member."""
+    members, generations = registry.members(), registry.generations()
+    runs = list(dict.fromkeys([*members["run"], *generations["run"]])) or [registry.path.parent.name]
+    rows = []
+    for run in runs:
+        mine = members[members["run"] == run]
+        done = generations[(generations["run"] == run) & generations["finished"].notna()]
+        best, best_by = best_member(mine)
+        rows.append(
+            {
+                "run": run,
+                "algorithm": ",".join(dict.fromkeys(mine["algorithm"])) or "-",
+                "task": ",".join(dict.fromkeys(mine["task"])) or "-",
+                "generations": len(done),
+                "members": len(mine),
+                "best": best,
+                "best_by": best_by,
+                "registry": str(registry.path),
+            }
+        )
+    return rows
+
+
+# ---------------------------------------------------------------- formatting
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _missing(value: Any) -> bool:
+    return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def _cell(value: Any) -> str:
+    """A value as a short table cell: floats to 4 significant digits, lists comma-joined, nothing as '-'."""
+    if _missing(value):
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return ",".join(map(str, value)) or "-"
+    if isinstance(value, dict):
+        return json.dumps(value, sort_keys=True)
+    return str(value)
+
+
+def _full(value: Any) -> str:
+    """A value in full: floats with every digit, lists and dicts as JSON, nothing as ''."""
+    if _missing(value):
+        return ""
+    if isinstance(value, list | dict):
+        return json.dumps(value, sort_keys=True)
+    return str(value)
+
+
+def terminal_width() -> int | None:
+    """The width to fit: $COLUMNS, else the terminal's; None when stdout is not a terminal (nothing cut)."""
+    columns = os.environ.get("COLUMNS", "")
+    if columns.isdigit() and int(columns) > 0:
+        return int(columns)
+    return shutil.get_terminal_size().columns if sys.stdout.isatty() else None
+
+
+def _is_numeric_column(values: Sequence[Any]) -> bool:
+    present = [v for v in values if not _missing(v)]
+    return bool(present) and all(isinstance(v, int | float) and not isinstance(v, bool) for v in present)
+
+
+def format_table(frame: pd.DataFrame, width: int | None = None) -> str:
+    """``frame`` as an aligned text table within ``width`` characters.
+
+    Too wide: the widest text columns (never id, generation or status) are cut with '…'
+    down to their header's width, then columns are left out from the right, which a
+    last line says.
+    """
+    headers = [str(c) for c in frame.columns]
+    numeric = [_is_numeric_column(list(frame[c])) for c in frame.columns]
+    cells = [[_cell(v) for v in frame[c]] for c in frame.columns]
+    widths = [max([len(h), *map(len, col)]) for h, col in zip(headers, cells, strict=True)]
+    hidden = 0
+    if width is not None:
+        hidden = _fit(headers, numeric, widths, width)
+    shown = len(headers) - hidden
+    lines = [_line(headers[:shown], widths, numeric)]
+    lines += [_line([col[i] for col in cells[:shown]], widths, numeric) for i in range(len(frame))]
+    if hidden:
+        lines.append(f"(+{hidden} columns: use --columns or --format csv)")
+    return "\n".join(lines)
+
+
+def _fit(headers: Sequence[str], numeric: Sequence[bool], widths: list[int], width: int) -> int:
+    """Narrow ``widths`` in place to fit ``width``; return how many columns to leave out on the right."""
+    shown = len(headers)
+
+    def excess() -> int:
+        return sum(widths[:shown]) + len(_GAP) * (shown - 1) - width
+
+    while excess() > 0:
+        cuttable = [
+            i
+            for i in range(shown)
+            if not numeric[i] and headers[i] not in _KEEP_WHOLE and widths[i] > max(len(headers[i]), 6)
+        ]
+        if cuttable:
+            i = max(cuttable, key=lambda j: widths[j])
+            widths[i] = max(len(headers[i]), 6, widths[i] - excess())
+        elif shown > 1:
+            shown -= 1
+        else:
+            break
+    return len(headers) - shown
+
+
+def _line(values: Sequence[str], widths: Sequence[int], numeric: Sequence[bool]) -> str:
+    parts = []
+    for value, w, right in zip(values, widths, numeric, strict=False):
+        text = value if len(value) <= w else value[: w - 1] + "…"
+        parts.append(text.rjust(w) if right else text.ljust(w))
+    return _GAP.join(parts).rstrip()
+
+
+def format_csv(frame: pd.DataFrame) -> str:
+    """``frame`` as CSV with every value in full (lists and dicts as JSON text)."""
+    return frame.map(_full).to_csv(index=False).rstrip("\n")
+
+
+def format_json(frame: pd.DataFrame) -> str:
+    """``frame`` as a JSON array of objects, values as they are (NaN as null)."""
+    records = [{k: (None if _missing(v) else v) for k, v in row.items()} for row in frame.to_dict("records")]
+    return json.dumps(records, indent=2, default=str)
+
+
+def format_frame(frame: pd.DataFrame, fmt: str, empty: str) -> str:
+    """``frame`` as ``fmt`` (table, csv or json); a table with no rows is the line ``empty``."""
+    if fmt == "csv":
+        return format_csv(frame)
+    if fmt == "json":
+        return format_json(frame)
+    if fmt != "table":
+        raise RegistryError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    return format_table(frame, terminal_width()) if len(frame) else empty
+
+
+def format_member(member: dict[str, Any]) -> str:
+    """Every field of a member in full, one ``key: value`` line each; tags and metrics one line per key, sorted.
+
+    Parents are comma-separated, a missing value is ``(none)``; nothing is cut.
+    """
+    lines = []
+    for key, value in member.items():
+        if isinstance(value, dict):
+            lines.append(f"{key}:" if value else f"{key}: {{}}")
+            lines += [f"  {k}: {_full(value[k])}" for k in sorted(value)]
+        elif isinstance(value, list):
+            lines.append(f"{key}: {', '.join(map(str, value))}")
+        else:
+            lines.append(f"{key}: {'(none)' if _missing(value) else _full(value)}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ queries
+def _members(args: argparse.Namespace, warn: Warn) -> str:
+    paths = locate(args.db, args.runs_dir)
+    if not paths:
+        raise RegistryError(_none_found(args.runs_dir))
+    frames = _each(paths, lambda r: r.members(run=args.run, task=args.task, status=args.status), warn)
+    frames = [f for f in frames if len(f)]
+    columns = parse_columns(args.columns)
+    if not frames:
+        return format_frame(pd.DataFrame(columns=columns or list(DEFAULT_FIELDS)), args.format, "(no members)")
+    frame = pd.concat(frames, ignore_index=True) if len(frames) > 1 else frames[0]
+    return format_frame(member_table(frame, columns), args.format, "(no members)")
+
+
+def _runs(args: argparse.Namespace, warn: Warn) -> str:
+    paths = locate(args.db, args.runs_dir)
+    rows = [row for rows in _each(paths, run_summaries, warn) for row in rows]
+    empty = f"(no registries under {_dir(args.runs_dir)}{REGISTRY_GLOB}; pass --runs-dir DIR or --db FILE)"
+    return format_frame(pd.DataFrame(rows, columns=list(RUN_COLUMNS)), args.format, empty)
+
+
+def _show(args: argparse.Namespace, warn: Warn) -> str:
+    with _open(locate_one(args.db, args.runs_dir)) as registry:
+        return format_member(_known(registry.member, args.id))
+
+
+def _crossplay(args: argparse.Namespace, warn: Warn) -> str:
+    with _open(locate_one(args.db, args.runs_dir)) as registry:
+        matrix = registry.crossplay(task=args.task, metric=args.metric)
+    if not len(matrix):
+        return "(no matches)"
+    with _pandas_display():
+        return matrix.to_string(float_format=lambda v: f"{v:.1f}")
+
+
+def _lineage(args: argparse.Namespace, warn: Warn) -> str:
+    with _open(locate_one(args.db, args.runs_dir)) as registry:
+        frame = _known(registry.lineage, args.id)
+    with _pandas_display():
+        return frame.to_string(index=False)
+
+
+def _export(args: argparse.Namespace, warn: Warn) -> str:
+    with _open(locate_one(args.db, args.runs_dir)) as registry:
+        out = registry.export(args.out, format=args.format, table=args.table)
+    return f"wrote {out} ({args.table}, {args.format})"
+
+
+def _known(lookup: Callable[[str], Any], member_id: str) -> Any:
+    """``lookup(member_id)``, an unknown id as RegistryError (one line at the command line)."""
+    try:
+        return lookup(member_id)
+    except KeyError as exc:
+        raise RegistryError(str(exc.args[0]) if exc.args else f"no member {member_id!r}") from exc
+
+
+def _pandas_display() -> Any:
+    return pd.option_context("display.max_colwidth", None, "display.max_rows", None, "display.max_columns", None)
+
+
+QUERIES: dict[str, Callable[[argparse.Namespace, Warn], str]] = {
+    "runs": _runs,
+    "list": _members,
+    "show": _show,
+    "crossplay": _crossplay,
+    "lineage": _lineage,
+    "export": _export,
+}
+
+
+def answer(args: argparse.Namespace, warn: Warn) -> str:
+    """The text ``atdrone registry QUERY`` prints; RegistryError or FileNotFoundError for a refused query."""
+    return QUERIES[args.registry_command](args, warn)
