@@ -198,11 +198,7 @@ def _train_local(args: argparse.Namespace) -> int:
         out_dir=args.out_dir,
         device=args.device,
     )
-    try:
-        trainer = run_training(cfg, resume=args.resume, progress=not args.no_progress)
-    except FileExistsError as exc:
-        print(f"atdrone train: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    trainer = run_training(cfg, resume=args.resume, progress=not args.no_progress)
     last = trainer.history[-1] if trainer.history else {}
     evals = ", ".join(f"{k[5:]} {last[k]:.1f}" for k in ("eval/SUC", "eval/COL", "eval/AST", "eval/REW") if k in last)
     print(f"{cfg.name}: {trainer.env_steps} env steps; last evaluation: {evals or 'none'}")
@@ -218,11 +214,7 @@ def _train_service(args: argparse.Namespace) -> int:
     cfg = load_experiment(
         args.config, seed=args.seed, name=args.name, out_dir=args.out_dir, generations=args.generations
     )
-    try:
-        summary = run_experiment(cfg, address=args.address, resume=args.resume, progress=not args.no_progress)
-    except FileExistsError as exc:
-        print(f"atdrone train: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    summary = run_experiment(cfg, address=args.address, resume=args.resume, progress=not args.no_progress)
     from atdrone.tracking import tracking_uri
 
     print(format_summary(cfg, summary, tracking_uri()))

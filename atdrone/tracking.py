@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
+import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -52,6 +54,17 @@ def _store_lock(uri: str) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}  # MLflow's model-training view
+CHAMPION = "champion"
+
+
+def artifact_root(uri: str) -> str | None:
+    """Where a sqlite store's artifacts go: ``mlartifacts/`` beside the database, never ./mlruns of the cwd."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    return (Path(uri.removeprefix("sqlite:///")).resolve().parent / "mlartifacts").as_uri()
+
+
 class Tracker:
     """A thin handle on one MLflow run (and its nested children)."""
 
@@ -66,6 +79,20 @@ class Tracker:
         with _store_lock(self.uri):  # two processes creating one sqlite store race on its schema
             mlflow.MlflowClient().search_experiments(max_results=1)
 
+    def experiment(self, name: str) -> str:
+        """The id of experiment ``name``; a new one opens in the model-training view, artifacts beside the store."""
+        client = self.mlflow.MlflowClient()
+        with _store_lock(self.uri):
+            found = client.get_experiment_by_name(name)
+            if found is None:
+                ident = client.create_experiment(name, artifact_location=_experiment_artifacts(self.uri, name))
+            else:
+                ident = found.experiment_id
+            for key, value in EXPERIMENT_KIND.items():
+                if found is None or found.tags.get(key) != value:
+                    client.set_experiment_tag(ident, key, value)
+        return str(ident)
+
     @contextmanager
     def run(
         self,
@@ -75,12 +102,35 @@ class Tracker:
         run_id: str | None = None,
         tags: Mapping[str, str] | None = None,
     ) -> Iterator[str]:
-        """Start (or with ``run_id`` resume) a run; yields its id."""
+        """Start (or with ``run_id`` resume) a run; yields its id.
+
+        The run ends FINISHED, or KILLED when interrupted (Ctrl-C, SIGTERM as SystemExit),
+        or FAILED on any other exception.
+        """
         if not nested:
-            with _store_lock(self.uri):
-                self.mlflow.set_experiment(experiment)
-        with self.mlflow.start_run(run_name=run_name, nested=nested, run_id=run_id, tags=dict(tags or {})) as r:
-            yield r.info.run_id
+            self.mlflow.set_experiment(experiment_id=self.experiment(experiment))
+        active = self.mlflow.start_run(run_name=run_name, nested=nested, run_id=run_id, tags=dict(tags or {}))
+        try:
+            yield active.info.run_id
+        except (KeyboardInterrupt, SystemExit):
+            self.mlflow.end_run("KILLED")
+            raise
+        except BaseException:
+            self.mlflow.end_run("FAILED")
+            raise
+        self.mlflow.end_run("FINISHED")
+
+    def end_stale_runs(self, experiment: str, tags: Mapping[str, str], keep: str | None = None) -> list[str]:
+        """End as KILLED the RUNNING runs with ``tags`` (a dead attempt's), except ``keep``; their ids."""
+        client = self.mlflow.MlflowClient()
+        found = client.get_experiment_by_name(experiment)
+        if found is None:
+            return []
+        query = " and ".join([f"tags.`{k}` = '{v}'" for k, v in tags.items()] + ["attributes.status = 'RUNNING'"])
+        stale = [r.info.run_id for r in client.search_runs([found.experiment_id], query) if r.info.run_id != keep]
+        for run_id in stale:
+            client.set_terminated(run_id, "KILLED")
+        return stale
 
     def log_params(self, params: Mapping[str, Any]) -> None:
         flat = _flatten(params)
@@ -90,10 +140,17 @@ class Tracker:
         if fresh:
             self.mlflow.log_params(fresh)
 
-    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+    def log_metrics(self, metrics: Mapping[str, float], step: int, run_id: str | None = None) -> None:
+        """Log to the active run, or to ``run_id`` (e.g. the parent of the nested run now active)."""
         clean = {k: float(v) for k, v in metrics.items() if v is not None and v == v}
-        if clean:
+        if not clean:
+            return
+        if run_id is None:
             self.mlflow.log_metrics(clean, step=step)
+            return
+        client = self.mlflow.MlflowClient()
+        stamp = int(time.time() * 1000)
+        client.log_batch(run_id, metrics=[self.mlflow.entities.Metric(k, v, stamp, step) for k, v in clean.items()])
 
     def log_artifact(self, path: str | Path, artifact_path: str | None = None) -> None:
         self.mlflow.log_artifact(str(path), artifact_path=artifact_path)
@@ -104,26 +161,51 @@ class Tracker:
     def set_tags(self, tags: Mapping[str, str]) -> None:
         self.mlflow.set_tags(dict(tags))
 
-    def log_model(self, model: Any, name: str, alias: str | None = None, tags: Mapping[str, str] | None = None) -> str:
-        """Log a torch model to the active run, register it as ``name`` and point ``alias`` at it."""
-        import mlflow.pytorch
+    def register_checkpoint(
+        self, checkpoint: str | Path, name: str, score: float | None, tags: Mapping[str, str] | None = None
+    ) -> str:
+        """Register a checkpoint file (logged to the active run under ``model/``) as a version of model ``name``.
 
-        info = mlflow.pytorch.log_model(model, name="model", registered_model_name=name, serialization_format="pickle")
-        version = str(info.registered_model_version)
+        Nothing is pickled: the version's source is the project's own checkpoint file
+        (JSON header + safetensors, digest-checked when loaded). ``score`` (e.g. the
+        best member's final-zoo SUC) is kept as the version's ``score`` tag, and the
+        alias ``champion`` moves to the best-scoring version of all runs registered
+        under ``name``. Returns the new version number.
+        """
+        path = Path(checkpoint)
+        self.mlflow.log_artifact(str(path), artifact_path="model")
+        active = self.mlflow.active_run()
+        if active is None:
+            raise RuntimeError("register_checkpoint needs an active run")
         client = self.mlflow.MlflowClient()
-        for key, value in (tags or {}).items():
-            client.set_model_version_tag(name, version, key, value)
-        if alias:
-            client.set_registered_model_alias(name, alias, version)
-        return version
+        with _store_lock(self.uri):
+            if not client.search_registered_models(filter_string=f"name = '{name}'"):
+                client.create_registered_model(name, description="atdrone population members (project checkpoints)")
+        source = f"{active.info.artifact_uri}/model/{path.name}"
+        info = {**(tags or {}), "checkpoint_file": path.name}
+        if score is not None:
+            info["score"] = repr(float(score))
+        version = client.create_model_version(name, source, run_id=active.info.run_id, tags=info)
+        best = max(
+            client.search_model_versions(f"name = '{name}'"),
+            key=lambda v: (float(v.tags.get("score", "-inf")), int(v.version)),
+        )
+        client.set_registered_model_alias(name, CHAMPION, best.version)
+        return str(version.version)
 
 
-def model_checkpoint(uri: str, tracking: str | None = None) -> str:
-    """The checkpoint file behind a registered model ``models:/NAME@ALIAS`` (or ``models:/NAME/VERSION``).
+def _experiment_artifacts(uri: str, name: str) -> str | None:
+    root = artifact_root(uri)
+    return None if root is None else f"{root}/{name}"
 
-    Read from the model version's ``checkpoint`` tag (set when the driver registers a
-    champion): the project's own checkpoint format is loaded, never the pickled MLflow
-    model. KeyError naming the model when it, its alias or its tag is missing.
+
+def model_checkpoint(uri: str, tracking: str | None = None, dst: str | Path | None = None) -> str:
+    """A local copy of the checkpoint behind a registered model ``models:/NAME@ALIAS`` (or ``models:/NAME/VERSION``).
+
+    The version's source is the project's checkpoint file; it is downloaded (to ``dst``,
+    default a fresh temporary folder) and loaded by the caller with
+    :func:`atdrone.models.checkpoint.load_checkpoint`, never unpickled. KeyError naming
+    the model when it, its alias or its file is missing.
     """
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     import mlflow
@@ -141,7 +223,14 @@ def model_checkpoint(uri: str, tracking: str | None = None) -> str:
             version = client.get_model_version(name, number)
     except Exception as exc:  # mlflow raises its own RestException / MlflowException for unknown names
         raise KeyError(f"no registered model {uri!r} in {tracking_uri(tracking)}: {exc}") from None
-    path = (version.tags or {}).get("checkpoint")
-    if not path:
-        raise KeyError(f"registered model {uri!r} has no 'checkpoint' tag (registered before deploy support?)")
-    return str(path)
+    filename = (version.tags or {}).get("checkpoint_file")
+    if not filename:
+        raise KeyError(f"registered model {uri!r} is not an atdrone checkpoint (no checkpoint_file tag)")
+    folder = Path(dst) if dst is not None else Path(tempfile.mkdtemp(prefix="atdrone-model-"))
+    try:
+        local = mlflow.artifacts.download_artifacts(
+            artifact_uri=version.source, dst_path=str(folder), tracking_uri=tracking_uri(tracking)
+        )
+    except Exception as exc:  # a version whose files were deleted or never uploaded
+        raise KeyError(f"registered model {uri!r}: cannot fetch {version.source}: {exc}") from None
+    return str(local)

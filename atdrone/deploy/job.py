@@ -96,7 +96,10 @@ def member_checkpoint(cfg: DeployConfig) -> Path:
         return path if path.is_absolute() else Path(ref.registry).parent / path
     from atdrone.tracking import model_checkpoint
 
-    return Path(model_checkpoint(ref.model))
+    try:
+        return Path(model_checkpoint(ref.model))
+    except KeyError as exc:
+        raise DeployError(f"member.model: {exc.args[0]}") from None
 
 
 def build_team(cfg: DeployConfig) -> tuple[Team, str]:

@@ -33,10 +33,23 @@ from atdrone.models.networks import ActorCritic
 from atdrone.policies.base import Policy
 from atdrone.policies.neural import NeuralPolicy
 from atdrone.policies.zoo import load_zoo
+from atdrone.rundir import RunError, check_resume, refuse_existing
 from atdrone.teams.evaluation import metrics, run_episodes
 
 log = logging.getLogger(__name__)
 STATE_FILE = "learner_state.safetensors"
+# what a resume may change; anything else in the run's config.json must match (atdrone.rundir.check_resume)
+RESUME_MAY_CHANGE = (
+    "total_env_steps",
+    "max_minutes",
+    "out_dir",
+    "torch_threads",
+    "update_threads",
+    "device",
+    "eval_every",
+    "eval_episodes",
+    "checkpoint_every",
+)
 
 
 @dataclass(frozen=True)
@@ -188,7 +201,7 @@ class Trainer:
         state_path = self.run_dir / STATE_FILE
         if not state_path.is_file():
             if (self.run_dir / "trainer_state.pt").is_file():
-                raise RuntimeError(
+                raise RunError(
                     f"{self.run_dir} was saved by an older atdrone (trainer_state.pt, a pickle): it cannot be "
                     "resumed; start a new run from its weights with init_checkpoint: last.pt"
                 )
@@ -294,13 +307,16 @@ def run_training(cfg: TrainConfig, resume: bool = False, progress: bool = True, 
     """Train with MLflow tracking: params, namespaced metrics, config, checkpoint and curve."""
     from atdrone.tracking import Tracker
 
+    run_dir = Path(cfg.out_dir) / cfg.name
+    if resume and (run_dir / "config.json").exists():
+        check_resume(run_dir, asdict(cfg), RESUME_MAY_CHANGE)
+    elif not resume and ((run_dir / STATE_FILE).exists() or (run_dir / "trainer_state.pt").exists()):
+        refuse_existing(run_dir)
+    trainer = Trainer(cfg)
+    if resume and not trainer.resume():
+        log.info("nothing to resume in %s: starting fresh", trainer.run_dir)
     tracker = Tracker(uri)
-    trainer = Trainer(cfg, tracker=tracker)
-    if resume:
-        if not trainer.resume():
-            log.info("nothing to resume in %s: starting fresh", trainer.run_dir)
-    elif (trainer.run_dir / STATE_FILE).exists() or (trainer.run_dir / "trainer_state.pt").exists():
-        raise FileExistsError(f"{trainer.run_dir} holds a run: pass --resume to continue it, or pick another name")
+    trainer.tracker = tracker
     experiment = cfg.experiment or cfg.name
     with tracker.run(experiment, f"{cfg.name}-seed{cfg.seed}", run_id=trainer.run_id) as run_id:
         trainer.run_id = run_id

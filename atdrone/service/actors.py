@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -163,11 +163,17 @@ class LearnerActor:
 
 
 def run_updates(
-    learner: Any, workers: Sequence[Any], jobs: Sequence[Any], updates: int, steps: int
+    learner: Any,
+    workers: Sequence[Any],
+    jobs: Sequence[Any],
+    updates: int,
+    steps: int,
+    on_update: Callable[[int], None] | None = None,
 ) -> list[dict[str, float]]:
     """``updates`` learner updates, each on one fragment of ``steps`` steps per worker (worker i runs jobs[i]).
 
     Each worker starts its job afresh first, so the same jobs give the same fragments.
+    ``on_update(n)`` is called after the n-th update (progress).
 
     The weights go out once per update as one object ref shared by every worker; the
     fragments go to the learner as refs, joined in worker order.
@@ -181,4 +187,6 @@ def run_updates(
         stats = ray.get(learner.update.remote(*fragments))
         stats["perf/pursuer_steps_per_s"] = stats["train/samples"] / (time.perf_counter() - t0)
         history.append(stats)
+        if on_update is not None:
+            on_update(len(history))
     return history

@@ -88,6 +88,7 @@ class Coordinator:
 
     def _begin(self, generation: int) -> None:
         """Counters and the generator of a generation, all derived from (seed, generation)."""
+        self._progress = ""
         self.rng = np.random.default_rng(derive_seed(self.cfg.seed, generation, RNG_STREAM))
         self.trained = 0
         self.registered = 0
@@ -102,6 +103,10 @@ class Coordinator:
             "budget": dict(self.budget),
             "algorithm": self.algorithm.state(),
         }
+
+    def progress(self) -> str:
+        """What the running generation is doing ("train: learner 1, update 5/12"); answered from a second thread."""
+        return self._progress
 
     def population(self) -> list[str]:
         return list(self.algorithm.population)
@@ -119,6 +124,9 @@ class Coordinator:
         self._begin(self.generation)
         ray.get(self.registry.start_generation.remote(self.run, self.generation, {"algorithm": self.cfg.algorithm}))
         report = self.algorithm.generation(self)
+        if self.cfg.final_zoo and report.learners:  # the parent run's curves: the new members on the zoo
+            self._progress = f"zoo: {len(report.learners)} new members on {self.cfg.final_zoo}"
+            self.evaluate_population(self.cfg.final_zoo, self.cfg.eval_episodes, members=report.learners)
         report.budget = dict(self.budget)
         report.wall_s = time.perf_counter() - t0
         ray.get(
@@ -181,7 +189,11 @@ class Coordinator:
             ray.put(RolloutJob(derive_seed(seed, i), self.ppo, envs, num_ctrl, self.architecture, specs, partners))
             for i in range(len(self.workers))
         ]
-        history = run_updates(learner, self.workers, jobs, updates, self.ppo.rollout_steps)
+
+        def report(done: int) -> None:
+            self._progress = f"train: learner {index + 1}, update {done}/{updates}"
+
+        history = run_updates(learner, self.workers, jobs, updates, self.ppo.rollout_steps, on_update=report)
         env_steps = updates * envs * len(self.workers) * self.ppo.rollout_steps
         samples = int(sum(h["train/samples"] for h in history))
         self.budget["env_steps"] += env_steps
@@ -253,6 +265,7 @@ class Coordinator:
         if len(counts) != len(teams) or any(n < 1 for n in counts):
             raise ValueError(f"need a positive episode count per team, got {counts} for {len(teams)} teams")
         first, self.evaluated = self.evaluated, self.evaluated + len(teams)
+        self._progress = f"evaluate: {len(teams)} matches, {sum(counts)} episodes ({first} matches before)"
         seeds = [derive_seed(self.cfg.seed, self.generation, EVAL_STREAM, first + i) for i in range(len(teams))]
         calls = [
             self.workers[i % len(self.workers)].evaluate.remote(
@@ -270,13 +283,16 @@ class Coordinator:
         return results
 
     # ------------------------------------------------------------ final eval
-    def evaluate_population(self, zoo_name: str, episodes: int) -> dict[str, dict[str, float]]:
-        """Every population member with partners from a zoo: SUC/COL/AST/REW per member."""
+    def evaluate_population(
+        self, zoo_name: str, episodes: int, members: Sequence[str] | None = None
+    ) -> dict[str, dict[str, float]]:
+        """Every population member (or ``members``) with partners from a zoo: SUC/COL/AST/REW per member."""
         zoo = load_zoo(zoo_name)
         if zoo.missing:
             return {}
         specs = list(zoo.spec.members)
-        population = self.population()
+        population = self.population() if members is None else list(members)
+        self._progress = f"zoo: {len(population)} members on {zoo_name}, {episodes} episodes each"
         calls = [
             self.workers[i % len(self.workers)].evaluate_zoo.remote(self.member_spec(m), specs, episodes, 4242 + i)
             for i, m in enumerate(population)

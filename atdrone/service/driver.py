@@ -22,6 +22,7 @@ import pandas as pd
 
 from atdrone.fileio import atomic_write_bytes
 from atdrone.population.base import GenerationReport
+from atdrone.rundir import RunError, check_resume, read_json, refuse_existing
 from atdrone.service.experiment import ExperimentConfig, registry_name
 from atdrone.teams.partners import slot_counts
 
@@ -41,8 +42,19 @@ def _jsonable(value: Any) -> Any:
     return str(value)
 
 
+LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"  # "0": Ray's node address is 127.0.0.1 (Ray reads it at import)
+# what a resume may change; anything else in config.json must match (atdrone.rundir.check_resume)
+RESUME_MAY_CHANGE = ("generations", "final_zoo", "final_episodes", "gif", "learner_gpus", "learner_threads", "out_dir")
+
+
 def init_ray(address: str | None, num_cpus: int | None = None) -> None:
-    """Join the cluster at ``address`` (or RAY_ADDRESS), else start a local one."""
+    """Join the cluster at ``address`` (or RAY_ADDRESS), else start a local one listening on loopback only.
+
+    A local Ray binds its servers (GCS, raylet, workers, agents) to the node address,
+    which Ray takes from the route to the internet unless told that the node is a
+    single machine; :data:`LOOPBACK_ENV` says so, for this process and every Ray
+    process it starts, so nothing of a local run listens beyond 127.0.0.1.
+    """
     import ray
 
     if ray.is_initialized():
@@ -51,8 +63,36 @@ def init_ray(address: str | None, num_cpus: int | None = None) -> None:
     kwargs: dict[str, Any] = {"namespace": "atdrone", "log_to_driver": False}
     if address:
         ray.init(address=address, **kwargs)
-    else:
-        ray.init(num_cpus=num_cpus or min(os.cpu_count() or 2, 8), include_dashboard=False, **kwargs)
+        return
+    os.environ[LOOPBACK_ENV] = "0"
+    from ray._private import ray_constants
+
+    ray_constants.ENABLE_RAY_CLUSTER = False  # read at import: ray may have been imported before this call
+    ray.init(num_cpus=num_cpus or min(os.cpu_count() or 2, 8), include_dashboard=False, **kwargs)
+
+
+def check_schedulable(cfg: ExperimentConfig, wait_s: float = 0.0) -> None:
+    """Refuse a run whose actors the cluster cannot place (it would wait forever in Ray's queue).
+
+    The rollout workers take one CPU each; a learner ``learner_gpus`` GPUs. ``wait_s``:
+    how long to wait for an autoscaling cluster to grow before refusing.
+    """
+    import ray
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        total = ray.cluster_resources()
+        cpus, gpus = float(total.get("CPU", 0.0)), float(total.get("GPU", 0.0))
+        problems = []
+        if cfg.num_workers > cpus:
+            problems.append(f"num_workers {cfg.num_workers}: one CPU per rollout worker, the cluster has {cpus:g}")
+        if cfg.learner_gpus > gpus:
+            problems.append(f"learner_gpus {cfg.learner_gpus:g} per learner, the cluster has {gpus:g} GPUs")
+        if not problems or time.monotonic() >= deadline:
+            break
+        time.sleep(2.0)
+    if problems:
+        raise RunError("cannot schedule the run: " + "; ".join(problems))
 
 
 def run_experiment(
@@ -66,7 +106,13 @@ def run_experiment(
 ) -> dict[str, Any]:
     """Run (or resume) an experiment to ``cfg.generations``; returns the final summary.
 
-    ``stop_after``: stop once this many generations are complete (for tests of resume).
+    A generation is all or nothing: ``service_state.json`` is written before the first
+    generation and after each completed one, and a resume discards the registry rows of
+    the generation it repeats (checkpoints are rewritten under the same ids) and ends the
+    MLflow runs the dead attempt left RUNNING as KILLED. A run directory already holding
+    a run is refused without ``resume``, and a resume with a different experiment
+    (:data:`RESUME_MAY_CHANGE` aside) is refused. ``stop_after``: stop once this many
+    generations are complete (for tests of resume).
     """
 
     import ray
@@ -80,15 +126,21 @@ def run_experiment(
     saved: dict[str, Any] = {}
     if state_path.exists():
         if not resume:
-            raise FileExistsError(f"{run_dir} holds a run: pass --resume to continue it, or pick another name")
-        saved = json.loads(state_path.read_text())
+            refuse_existing(run_dir)
+        saved = read_json(state_path, "service state")
+        check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
+    elif resume and (run_dir / "config.json").exists():
+        check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
     run_dir.mkdir(parents=True, exist_ok=True)
     _write_json(run_dir / "config.json", cfg.to_dict())
     init_ray(address, num_cpus)
+    check_schedulable(cfg, wait_s=60.0 if (address or os.environ.get("RAY_ADDRESS")) else 0.0)
     registry = registry_actor(run_dir / "registry.db", name=registry_name(cfg.name))
     start = saved.get("coordinator", {}).get("generation", 0)
     ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
-    coordinator = Coordinator.remote(cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry)
+    coordinator = Coordinator.options(max_concurrency=2).remote(  # the 2nd thread answers progress()
+        cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry
+    )
     try:
         return _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
     finally:  # the run's actors end with it; the registry's name is free for the next run
@@ -113,18 +165,24 @@ def _generations(
     state_path = run_dir / STATE_FILE
     tracker = Tracker(tracking_uri)
     reports: list[GenerationReport] = []
-    with tracker.run(
-        cfg.experiment or cfg.name, f"{cfg.name}-{cfg.algorithm}", run_id=saved.get("mlflow_run_id")
-    ) as run_id:
+    experiment = cfg.experiment or cfg.name
+    run_tag = {"atdrone.run": cfg.name}
+    name = f"{cfg.name}-{cfg.algorithm}"
+    with tracker.run(experiment, name, run_id=saved.get("mlflow_run_id"), tags=run_tag) as run_id:
+        killed = tracker.end_stale_runs(experiment, run_tag, keep=run_id)  # a dead attempt's nested runs
+        if killed:
+            log.info("ended %d MLflow runs of an interrupted attempt as KILLED", len(killed))
+        if "mlflow_run_id" not in saved:  # from now on a rerun without --resume is refused
+            _write_json(state_path, {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id})
         tracker.log_params({"experiment": cfg.to_dict()})
         tracker.set_tags({"atdrone.algorithm": cfg.algorithm, "atdrone.task": cfg.task})
         tracker.log_artifact(run_dir / "config.json")
         start = saved.get("coordinator", {}).get("generation", 0)
         for g in range(start, cfg.generations):
             t0 = time.perf_counter()
-            report: GenerationReport = ray.get(coordinator.run_generation.remote())
+            report = _await_generation(coordinator, cfg.name, g, progress)
             reports.append(report)
-            _log_generation(tracker, report, run_dir, registry, cfg)
+            _log_generation(tracker, report, run_dir, registry, cfg, run_id)
             state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id}
             _write_json(state_path, state)
             if progress:
@@ -137,9 +195,31 @@ def _generations(
                 )
             if stop_after is not None and g + 1 >= stop_after:
                 return {"run_dir": str(run_dir), "mlflow_run_id": run_id, "reports": reports, "stopped": True}
+        if progress and cfg.final_zoo:
+            episodes = f"{cfg.final_episodes} episodes per member"
+            print(f"[{cfg.name}] final evaluation on {cfg.final_zoo}, {episodes}", flush=True)
         summary = _finish(tracker, coordinator, registry, cfg, run_dir)
         summary.update({"run_dir": str(run_dir), "mlflow_run_id": run_id, "reports": reports})
     return summary
+
+
+def _await_generation(coordinator: Any, name: str, g: int, progress: bool, every_s: float = 10.0) -> GenerationReport:
+    """Wait for the coordinator's generation ``g``, printing what it is doing (updates, matches) as it goes."""
+    import ray
+
+    ref = coordinator.run_generation.remote()
+    last, shown = "", time.monotonic()
+    while True:
+        done, _ = ray.wait([ref], timeout=1.0)
+        if done:
+            report: GenerationReport = ray.get(ref)
+            return report
+        if not progress:
+            continue
+        line = ray.get(coordinator.progress.remote())
+        if line and (line.split(":")[0] != last.split(":")[0] or time.monotonic() - shown >= every_s):
+            print(f"[{name}] generation {g}: {line}", flush=True)
+            last, shown = line, time.monotonic()
 
 
 def _release(coordinator: Any, registry: Any, name: str, timeout_s: float = 30.0) -> None:
@@ -160,16 +240,18 @@ def _release(coordinator: Any, registry: Any, name: str, timeout_s: float = 30.0
 
 
 def _log_generation(
-    tracker: Any, report: GenerationReport, run_dir: Path, registry: Any, cfg: ExperimentConfig
+    tracker: Any, report: GenerationReport, run_dir: Path, registry: Any, cfg: ExperimentConfig, parent: str
 ) -> None:
-    """A generation as a nested MLflow run: its metrics, documents, figures, and a nested run per learner."""
+    """A generation as a nested MLflow run (metrics, documents, figures, a nested run per learner) and a
+    point on the parent run's curves (:func:`_generation_curves`)."""
     import ray
 
     from atdrone.population import ALGORITHMS
 
     g = report.generation
     gen_dir = run_dir / "generations" / f"{g:03d}"
-    with tracker.run(cfg.name, f"generation-{g}", nested=True):
+    tracker.log_metrics(_generation_curves(report, registry, cfg), step=g, run_id=parent)
+    with tracker.run(cfg.name, f"generation-{g}", nested=True, tags={"atdrone.run": cfg.name}):
         metrics = {"pop/size": len(report.population), "perf/generation_s": report.wall_s, **report.metrics}
         metrics.update({f"budget/{k}": float(v) for k, v in report.budget.items()})
         if report.matches:
@@ -191,7 +273,7 @@ def _log_generation(
             crossplay_heatmap(table, gen_dir / "crossplay.png", title=f"{cfg.name} cross-play SUC, generation {g}")
             tracker.log_artifact(gen_dir / "crossplay.png")
         for t in report.training:
-            with tracker.run(cfg.name, f"learner-{t.member}", nested=True):
+            with tracker.run(cfg.name, f"learner-{t.member}", nested=True, tags={"atdrone.run": cfg.name}):
                 tracker.set_tags({"atdrone.member": t.member, "atdrone.generation": str(g)})
                 tracker.log_dict(
                     {"parent": t.parent, "seed": t.seed, "partners": t.partners, "drawn": t.drawn}, "training.json"
@@ -200,6 +282,33 @@ def _log_generation(
                     tracker.log_metrics(row, step=i)
                 tracker.log_artifact(run_dir / "members" / f"{t.member}.pt", "checkpoints")
                 ray.get(registry.update_member.remote(t.member, mlflow_run_id=tracker.mlflow.active_run().info.run_id))
+
+
+def _generation_curves(report: GenerationReport, registry: Any, cfg: ExperimentConfig) -> dict[str, float]:
+    """The parent run's per-generation curves: population size, rho entropy, best and mean zoo SUC.
+
+    The coordinator evaluates each generation's new learners on the final zoo
+    (``eval_episodes`` episodes each, registry metrics ``<zoo>/SUC``); best and mean are
+    over the members of the population now.
+    """
+    import ray
+
+    curves = {"gen/population_size": float(len(report.population))}
+    if "pop/rho_entropy" in report.metrics:
+        curves["gen/rho_entropy"] = float(report.metrics["pop/rho_entropy"])
+    if not cfg.final_zoo:
+        return curves
+    members = ray.get(registry.members.remote(run=cfg.name))
+    suc = {
+        row["id"]: row["metrics"].get(f"{cfg.final_zoo}/SUC")
+        for _, row in members.iterrows()
+        if row["id"] in report.population
+    }
+    known = [v for v in suc.values() if v is not None]
+    if known:
+        curves[f"gen/{cfg.final_zoo}_SUC_best"] = float(max(known))
+        curves[f"gen/{cfg.final_zoo}_SUC_mean"] = float(np.mean(known))
+    return curves
 
 
 def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig, run_dir: Path) -> dict[str, Any]:
@@ -228,19 +337,26 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
         best = str(table.loc[table[suc].idxmax(), "member"])
     else:
         best = state["population"][-1]
-    _log_best(tracker, best, run_dir, cfg)
-    return {"population": table, "best": best, "budget": ray.get(coordinator.state.remote())["budget"]}
+    score = float(table.loc[table["member"] == best, suc].iloc[0]) if results else None
+    model = _log_best(tracker, best, score, run_dir, cfg)
+    budget = ray.get(coordinator.state.remote())["budget"]
+    return {"population": table, "best": best, "budget": budget, "model": model}
 
 
-def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> None:
-    """Log the best member as an MLflow model with alias "champion", and a GIF of it playing."""
+def model_name(cfg: ExperimentConfig) -> str:
+    """The registered model of an experiment config: one per config, a version per run."""
+    return f"atdrone-{cfg.experiment or cfg.name}"
+
+
+def _log_best(tracker: Any, best: str, score: float | None, run_dir: Path, cfg: ExperimentConfig) -> str:
+    """Register the best member's checkpoint as a version of the config's model (the alias "champion" goes to
+    the best-scoring version of all its runs) and a GIF of it playing; returns ``models:/NAME/VERSION``."""
     from atdrone.models.checkpoint import load_checkpoint
 
     path = run_dir / "members" / f"{best}.pt"
     model, header = load_checkpoint(path)
-    tracker.log_model(
-        model, name=f"atdrone-{cfg.name}", alias="champion", tags={"member": best, "checkpoint": str(path.resolve())}
-    )
+    tags = {"member": best, "run": cfg.name, "score_metric": f"{cfg.final_zoo}_SUC" if score is not None else ""}
+    version = tracker.register_checkpoint(path, model_name(cfg), score, tags)
     if cfg.gif:
         from atdrone.envs.render import save_gif
         from atdrone.policies.neural import NeuralPolicy
@@ -252,6 +368,7 @@ def _log_best(tracker: Any, best: str, run_dir: Path, cfg: ExperimentConfig) -> 
         save_gif(frames, gif, fps=10)
         tracker.log_artifact(gif)
     tracker.log_dict(header, "best_member_header.json")
+    return f"models:/{model_name(cfg)}/{version}"
 
 
 def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri: str) -> str:
@@ -265,6 +382,7 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
             f"best member: {summary['best']}; run directory: {summary['run_dir']}",
             "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
             f"registry: atdrone registry --db {summary['run_dir']}/registry.db list",
+            f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion)",
             f"MLflow: experiment {cfg.experiment or cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
             f"browse with: mlflow ui --backend-store-uri {tracking_uri}",
         ]

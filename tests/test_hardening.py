@@ -1,0 +1,324 @@
+"""Security and data hardening: nothing unpickled, resumes of the same experiment only, generations all
+or nothing, MLflow models without pickle and with one champion across runs, local Ray on loopback only."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import ray
+
+from atdrone.cli import main
+from atdrone.learn.trainer import STATE_FILE as LEARNER_STATE
+from atdrone.learn.trainer import Trainer, load_train_config, run_training
+from atdrone.models.checkpoint import MAGIC, load_checkpoint, save_checkpoint
+from atdrone.models.networks import ActorCritic, NetConfig
+from atdrone.registry import Registry
+from atdrone.rundir import RunError, config_changes
+from atdrone.service.driver import STATE_FILE, check_schedulable, run_experiment
+from atdrone.service.experiment import load_experiment
+from atdrone.tracking import CHAMPION, Tracker, model_checkpoint
+
+TINY_TRAIN = {
+    "name": "tiny",
+    "task": "4p2e1o",
+    "seed": 1,
+    "total_env_steps": 512,
+    "eval_every": 1000,
+    "eval_episodes": 4,
+    "ppo": {"num_envs": 8, "rollout_steps": 32, "minibatch_size": 256, "entity_dim": 16, "hidden": 32},
+}
+TINY_SERVICE = {
+    "task": "4p2e1o",
+    "algorithm": "hola",
+    "generations": 2,
+    "updates_per_generation": 2,
+    "num_workers": 2,
+    "eval_episodes": 4,
+    "final_zoo": "zoo1",
+    "final_episodes": 4,
+    "gif": False,
+    "hola": {"pi0_seeds": 1, "pi0_levels": 2, "min_episodes": 4, "max_episodes": 8},
+    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
+}
+
+
+class _Marker:
+    """Unpickling this touches a file: the harmless stand-in for code a planted pickle would run."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self):  # type: ignore[no-untyped-def]
+        return (Path.touch, (self.path,))
+
+
+def _write_config(tmp_path: Path, doc: dict) -> Path:
+    path = tmp_path / f"{doc['name']}.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+# ------------------------------------------------------------------ 1. nothing unpickled on resume
+@pytest.mark.parametrize("planted", ["trainer_state.pt", LEARNER_STATE])
+def test_a_pickle_planted_in_a_run_directory_is_refused_and_never_run(tmp_path, capsys, planted):
+    marker = tmp_path / "executed"
+    run_dir = tmp_path / "runs" / "tiny"
+    run_dir.mkdir(parents=True)
+    (run_dir / planted).write_bytes(pickle.dumps({"state": _Marker(marker)}))
+    config = _write_config(tmp_path, {**TINY_TRAIN, "out_dir": str(tmp_path / "runs")})
+    code = main(["train", str(config), "--resume", "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and not marker.exists()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and str(run_dir) in err
+
+
+def test_a_learner_state_with_a_changed_byte_is_refused(tmp_path):
+    cfg = load_train_config({**TINY_TRAIN, "out_dir": str(tmp_path)})
+    trainer = Trainer(cfg)
+    trainer.update_once()
+    trainer.save()
+    path = trainer.run_dir / LEARNER_STATE
+    data = bytearray(path.read_bytes())
+    data[-3] ^= 0x01  # one bit of one tensor
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=r"digest|sha256|corrupt"):
+        Trainer(cfg).resume()
+
+
+# ------------------------------------------------------------------ 4. resume checks the config
+def test_config_changes_lists_what_differs_beyond_what_may_change():
+    saved = {"task": "4p2e1o", "generations": 3, "hola": {"population_size": 4}}
+    new = {"task": "4p2e3o", "generations": 5, "hola": {"population_size": 6}}
+    assert config_changes(saved, new, ["generations"]) == [
+        "hola.population_size: 4 -> 6",
+        "task: '4p2e1o' -> '4p2e3o'",
+    ]
+    assert config_changes(saved, {**saved, "generations": 9}, ["generations"]) == []
+
+
+def test_the_local_trainer_refuses_to_resume_a_different_experiment(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    cfg = load_train_config({**TINY_TRAIN, "out_dir": str(tmp_path)})
+    run_training(cfg, progress=False, uri=uri)
+    saved = (tmp_path / "tiny" / "config.json").read_bytes()
+    other = load_train_config({**TINY_TRAIN, "out_dir": str(tmp_path), "task": "4p2e3o"})
+    with pytest.raises(RunError, match=r"task: '4p2e1o' -> '4p2e3o'"):
+        run_training(other, resume=True, progress=False, uri=uri)
+    assert (tmp_path / "tiny" / "config.json").read_bytes() == saved
+    longer = load_train_config({**TINY_TRAIN, "out_dir": str(tmp_path), "total_env_steps": 1024})
+    assert run_training(longer, resume=True, progress=False, uri=uri).env_steps == 1024  # a longer budget may
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    from atdrone.service.driver import init_ray
+
+    init_ray(None, num_cpus=2)
+    yield
+    ray.shutdown()
+
+
+def _service(tmp_path: Path, name: str, **kw) -> dict:
+    return {**TINY_SERVICE, "name": name, "out_dir": str(tmp_path), **kw}
+
+
+def test_the_service_refuses_to_resume_a_different_experiment(local_ray, tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    run_experiment(load_experiment(_service(tmp_path, "mix")), tracking_uri=uri, progress=False, stop_after=1)
+    saved = (tmp_path / "mix" / "config.json").read_bytes()
+    other = _service(tmp_path, "mix", algorithm="sp", task="4p2e3o", sp={})
+    other.pop("hola")
+    with pytest.raises(RunError, match=r"algorithm: 'hola' -> 'sp'.*task: '4p2e1o' -> '4p2e3o'"):
+        run_experiment(load_experiment(other), tracking_uri=uri, resume=True, progress=False)
+    assert (tmp_path / "mix" / "config.json").read_bytes() == saved
+    assert set(Registry(tmp_path / "mix" / "registry.db").members()["algorithm"]) == {"hola"}
+
+
+def test_a_damaged_service_state_is_a_clear_error(local_ray, tmp_path):
+    run_dir = tmp_path / "bad"
+    run_dir.mkdir()
+    (run_dir / STATE_FILE).write_bytes(b"{not json")
+    with pytest.raises(RunError, match="unreadable service state"):
+        run_experiment(load_experiment(_service(tmp_path, "bad")), resume=True, progress=False)
+
+
+# ------------------------------------------------------------------ 3. a generation is all or nothing
+def test_a_run_killed_between_a_checkpoint_and_its_generation_leaves_no_orphan(local_ray, tmp_path):
+    """Killed once generation 0's first member is written: a plain rerun is refused, a resume rebuilds
+    generation 0 under the same ids, and the dead attempt's MLflow runs end KILLED."""
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    doc = _service(tmp_path, "orphan_t", generations=1)
+    script = (
+        "import json, sys; from atdrone.service.driver import run_experiment; "
+        "from atdrone.service.experiment import load_experiment; "
+        f"run_experiment(load_experiment(json.loads(sys.argv[1])), tracking_uri={uri!r}, progress=False, num_cpus=2)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script, json.dumps(doc)], start_new_session=True)
+    first = tmp_path / "orphan_t" / "members" / "hola-g0-0.pt"
+    deadline = time.monotonic() + 180
+    try:
+        while time.monotonic() < deadline and proc.poll() is None and not first.exists():
+            time.sleep(0.02)
+        assert proc.poll() is None and first.exists(), "the run ended before its first checkpoint"
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    state = json.loads((tmp_path / "orphan_t" / STATE_FILE).read_text())
+    assert state["coordinator"]["generation"] == 0  # written before generation 0: the kill came inside it
+    with pytest.raises(FileExistsError, match="--resume"):
+        run_experiment(load_experiment(doc), tracking_uri=uri, progress=False)
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    experiment = client.get_experiment_by_name("orphan_t").experiment_id
+    (parent,) = client.search_runs([experiment])
+    assert parent.info.status == "RUNNING" and parent.info.run_id == state["mlflow_run_id"]
+    # what a kill while a generation was being logged leaves: a nested run still RUNNING
+    dead = client.create_run(experiment, tags={"atdrone.run": "orphan_t", "mlflow.parentRunId": parent.info.run_id})
+
+    summary = run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)
+    members = Registry(tmp_path / "orphan_t" / "registry.db").members(run="orphan_t")
+    assert sorted(members["id"]) == ["hola-g0-0", "hola-g0-1"]  # pi0_levels 2, each once
+    assert set(members["status"]) == {"active"} and members["mlflow_run_id"].notna().all()
+    for _, m in members.iterrows():
+        assert load_checkpoint(m["checkpoint"])[1]["sha256"] == m["sha256"]
+    status = {r.info.run_id: r.info.status for r in client.search_runs([experiment])}
+    assert status.pop(dead.info.run_id) == "KILLED"
+    assert set(status.values()) == {"FINISHED"} and parent.info.run_id in status  # the parent run was resumed
+    assert summary["population"]["member"].tolist() == ["hola-g0-0", "hola-g0-1"]
+
+
+# ------------------------------------------------------------------ MLflow: no pickle, one champion
+def _checkpoint(path: Path, seed: int) -> Path:
+    import torch
+
+    torch.manual_seed(seed)
+    model = ActorCritic(NetConfig(entity_dim=8, hidden=16))
+    save_checkpoint(path, model, {"task": "4p2e1o", "num_p": 4, "num_e": 2})
+    return path
+
+
+def test_models_are_checkpoints_with_one_champion_across_runs(tmp_path, monkeypatch):
+    elsewhere = tmp_path / "cwd"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    uri = f"sqlite:///{tmp_path}/store/mlflow.db"
+    tracker = Tracker(uri)
+    versions = []
+    for i, score in enumerate([40.0, 30.0, 55.0]):
+        with tracker.run("champ", f"run-{i}"):
+            path = _checkpoint(tmp_path / f"m{i}.pt", seed=i)
+            versions.append(tracker.register_checkpoint(path, "atdrone-champ", score, {"member": f"m{i}"}))
+        client = tracker.mlflow.MlflowClient()
+        champion = str(client.get_model_version_by_alias("atdrone-champ", CHAMPION).version)
+        assert champion == {0: "1", 1: "1", 2: "3"}[i]  # the best score of every run so far
+    assert versions == ["1", "2", "3"]
+    local = Path(model_checkpoint("models:/atdrone-champ@champion", tracking=uri, dst=tmp_path / "dl"))
+    assert local.read_bytes().startswith(MAGIC) and local.read_bytes() == (tmp_path / "m2.pt").read_bytes()
+    _, header = load_checkpoint(local)
+    assert header["task"] == "4p2e1o"
+    files = [p for p in (tmp_path / "store" / "mlartifacts").rglob("*") if p.is_file()]
+    assert files and all(p.read_bytes().startswith(MAGIC) for p in files)  # no MLmodel, no pickle
+    assert not (elsewhere / "mlruns").exists() and not list(elsewhere.iterdir())  # nothing in the cwd
+    experiment = client.get_experiment_by_name("champ")
+    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
+
+
+# ------------------------------------------------------------------ 7. loopback only
+LISTENING = textwrap.dedent(
+    """
+    import json, os, socket, struct, sys
+    from atdrone.service.driver import init_ray
+    import ray
+
+    def listening():
+        found = {}
+        for name in ("tcp", "tcp6"):
+            with open(f"/proc/net/{name}") as f:
+                next(f)
+                for line in f:
+                    parts = line.split()
+                    if parts[3] == "0A":  # LISTEN
+                        ip, port = parts[1].split(":")
+                        raw = bytes.fromhex(ip)
+                        if len(raw) == 4:
+                            addr = socket.inet_ntop(socket.AF_INET, raw[::-1])
+                        else:
+                            addr = socket.inet_ntop(socket.AF_INET6, struct.pack(">4I", *struct.unpack("<4I", raw)))
+                        found[int(parts[9])] = (addr, int(port, 16))
+        return found
+
+    def descendants(root):
+        children = {}
+        for p in os.listdir("/proc"):
+            if p.isdigit():
+                try:
+                    with open(f"/proc/{p}/stat") as f:
+                        children.setdefault(int(f.read().rsplit(")", 1)[1].split()[1]), []).append(int(p))
+                except OSError:
+                    pass
+        out, todo = [], [root]
+        while todo:
+            pid = todo.pop()
+            out.append(pid)
+            todo.extend(children.get(pid, []))
+        return out
+
+    init_ray(None, num_cpus=2)
+
+    @ray.remote
+    class Probe:
+        def pid(self):
+            return os.getpid()
+
+    ray.get(Probe.remote().pid.remote())
+    sockets = listening()
+    found = set()
+    for pid in descendants(os.getpid()):
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+            except OSError:
+                continue
+            if link.startswith("socket:[") and int(link[8:-1]) in sockets:
+                found.add(sockets[int(link[8:-1])][0])
+    print(json.dumps(sorted(found)))
+    ray.shutdown()
+    """
+)
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="needs Linux /proc")
+def test_a_local_run_listens_on_loopback_only():
+    env = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")}
+    out = subprocess.run(
+        [sys.executable, "-c", LISTENING], capture_output=True, text=True, timeout=120, env=env, check=True
+    )
+    addresses = json.loads(out.stdout.strip().splitlines()[-1])
+    assert addresses, "no listening socket found: the probe is broken"
+    assert set(addresses) <= {"127.0.0.1", "::1", "::ffff:127.0.0.1"}, addresses
+
+
+# ------------------------------------------------------------------ fail early: what cannot be scheduled
+def test_a_run_the_cluster_cannot_place_is_refused_at_once(local_ray, tmp_path):
+    gpu = load_experiment(_service(tmp_path, "gpu", learner_gpus=1))
+    t0 = time.monotonic()
+    with pytest.raises(RunError, match=r"learner_gpus 1 per learner, the cluster has 0 GPUs"):
+        run_experiment(gpu, progress=False)
+    assert time.monotonic() - t0 < 30
+    workers = load_experiment(_service(tmp_path, "cpus", num_workers=4))
+    with pytest.raises(RunError, match=r"num_workers 4: one CPU per rollout worker, the cluster has 2"):
+        check_schedulable(workers)
