@@ -4,19 +4,29 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint install bench clean
+.PHONY: demo test lint install lock bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip -q
 
-# torch first and pinned: 2.13.0 is the CPU build on this machine's disk
-$(STAMP): pyproject.toml | $(BIN)/python
+# torch first and pinned: 2.13.0 is the CPU build on this machine's disk; then everything else
+# at the versions of constraints.txt, the resolved set the tests passed with
+$(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e ".[dev,deploy]"
+	$(BIN)/pip install -q -c constraints.txt -e ".[dev,deploy]"
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# re-resolve from pyproject.toml's ranges and record the result in constraints.txt
+lock: | $(BIN)/python
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q --upgrade -e ".[dev,deploy]"
+	{ echo "# The resolved dependency set the tests passed with (regenerate with: make lock)."; \
+	  echo "# make install uses it as pip constraints, so a fresh clone installs these versions."; \
+	  $(BIN)/pip freeze --exclude-editable | grep -v '^atdrone' | sed 's/^torch==\(.*\)+cpu$$/torch==\1/'; \
+	} > constraints.txt.tmp && mv constraints.txt.tmp constraints.txt
 
 lint: $(STAMP)
 	$(BIN)/ruff check atdrone tests benchmarks jobs
@@ -26,9 +36,10 @@ lint: $(STAMP)
 test: lint
 	$(BIN)/python -m pytest -q
 
-# the quick HOLA-Drone V2 run on a local Ray (a fresh run name each time; <= 10 min on 2 cores)
+# the quick HOLA-Drone V2 run on a local Ray, in runs/hola_quick (<= 10 min on 2 cores); run again, it
+# resumes an interrupted run or shows the finished one
 demo: $(STAMP)
-	$(BIN)/atdrone train configs/experiments/hola_quick.json --name hola_quick_$$(date +%Y%m%d_%H%M%S)
+	$(BIN)/atdrone train configs/experiments/hola_quick.json --resume
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/env_throughput.py

@@ -129,6 +129,9 @@ def run_experiment(
             refuse_existing(run_dir)
         saved = read_json(state_path, "service state")
         check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
+        done = _completed(run_dir, saved, cfg)
+        if done is not None:
+            return done
     elif resume and (run_dir / "config.json").exists():
         check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -145,6 +148,20 @@ def run_experiment(
         return _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
     finally:  # the run's actors end with it; the registry's name is free for the next run
         _release(coordinator, registry, registry_name(cfg.name))
+
+
+SUMMARY_FILE = "summary.json"
+
+
+def _completed(run_dir: Path, saved: dict[str, Any], cfg: ExperimentConfig) -> dict[str, Any] | None:
+    """The summary of a run that already finished all ``cfg.generations`` (resumed again: nothing to do)."""
+    if saved.get("coordinator", {}).get("generation", 0) < cfg.generations or not (run_dir / SUMMARY_FILE).exists():
+        return None
+    summary = read_json(run_dir / SUMMARY_FILE, "run summary")
+    summary["population"] = pd.read_csv(run_dir / "population.csv")
+    summary.update({"run_dir": str(run_dir), "mlflow_run_id": saved.get("mlflow_run_id"), "reports": []})
+    summary["complete"] = True
+    return summary
 
 
 def _generations(
@@ -340,6 +357,7 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
     score = float(table.loc[table["member"] == best, suc].iloc[0]) if results else None
     model = _log_best(tracker, best, score, run_dir, cfg)
     budget = ray.get(coordinator.state.remote())["budget"]
+    _write_json(run_dir / SUMMARY_FILE, {"best": best, "budget": budget, "model": model})
     return {"population": table, "best": best, "budget": budget, "model": model}
 
 
@@ -375,9 +393,14 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
     """The end-of-run text: the population table and where to look (run dir, registry, MLflow)."""
     with pd.option_context("display.float_format", "{:.2f}".format, "display.width", 120):
         table = summary["population"].to_string(index=False)
+    done = (
+        f"\n{cfg.name} had already finished its {cfg.generations} generations (nothing to resume)"
+        if summary.get("complete")
+        else ""
+    )
     return "\n".join(
         [
-            f"\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):",
+            f"{done}\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):",
             table,
             f"best member: {summary['best']}; run directory: {summary['run_dir']}",
             "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
