@@ -6,9 +6,11 @@ new subcommand is one more pair and one more table row.
 
     atdrone render --task 4p2e5o --out run.gif [--seed 0] [--frame-every 2] [--png frame.png]
                    [--policy greedy|vicsek|PATH] [--zoo zoo1]
-    atdrone demo [--out demo_out]
+    atdrone demo [--out-dir demo_out]
+
+``--out`` is always an output file (a GIF, an export) and ``--out-dir`` an output folder.
     atdrone evaluate --policy greedy|vicsek|PATH --task 4p2e1o|all --zoo zoo1|all [--episodes 500]
-                     [--seeds 0 1 2] [--out eval_out]
+                     [--seeds 0 1 2] [--out-dir eval_out]
     atdrone deploy CONFIG [--arm] [--backend sim|cflib] [--episodes N] [--compare] [--tracking-uri URI]
     atdrone deploy report LOG
 """
@@ -119,9 +121,9 @@ def add_demo(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "demo",
         help="render an episode of each of the four tasks",
-        description="Render one episode of each paper task to <out>/<task>.gif and print a summary table.",
+        description="Render one episode of each paper task to <out-dir>/<task>.gif and print a summary table.",
     )
-    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
+    p.add_argument("--out-dir", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
     _add_episode_args(p)
     return p
 
@@ -134,7 +136,7 @@ def run_demo(args: argparse.Namespace) -> int:
     for n, task in enumerate(DEMO_TASKS, 1):
         print(f"[{n}/{len(DEMO_TASKS)}] {task}: running and drawing an episode ...", flush=True)
         frames, summary = record_episode(task, args.seed, max_steps=args.max_steps, frame_every=args.frame_every)
-        out = save_gif(frames, args.out / f"{task}.gif", fps=args.fps)
+        out = save_gif(frames, args.out_dir / f"{task}.gif", fps=args.fps)
         print(f"[{n}/{len(DEMO_TASKS)}] {task}: {summary['outcome']} after {summary['steps']} steps -> {out}")
         rows.append(summary)
     print()
@@ -142,7 +144,7 @@ def run_demo(args: argparse.Namespace) -> int:
     for s in rows:
         captured = f"{s['captured']}/{s['num_e']}"
         print(f"{s['task']:<8} {s['outcome']:<10} {s['steps']:>6} {s['return']:>8.2f} {captured:>9}")
-    print(f"\nGIFs in {args.out}/ (seed {args.seed}, built-in chase policy)")
+    print(f"\nGIFs in {args.out_dir}/ (seed {args.seed}, built-in chase policy)")
     return 0
 
 
@@ -289,7 +291,7 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
     p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default: 0)")
-    p.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
+    p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -327,7 +329,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     task_part = "all" if args.task == "all" else tasks[0].name
     zoo_part = "all" if args.zoo == "all" else zoos[0].name
     stem = f"{label}_{task_part}_{zoo_part}"
-    json_path, csv_path = write_report(args.out, stem, cells, args.policy, args.episodes, args.seeds)
+    json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
     print(f"\nwrote {json_path} and {csv_path}")
     return 0
 

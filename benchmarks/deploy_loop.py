@@ -7,7 +7,7 @@ achieved tick rate, and per-stage latency percentiles (ms) from the flight log. 
 reference in the same run is the tick period (100 ms): ``p99_over_period`` is the tick
 latency's 99th percentile as a share of it. Target (issue 14): 10 Hz held, tick p99 < 20 ms.
 
-Usage: python benchmarks/deploy_loop.py [--steps 300] [--episodes 3] [--out reports/deploy_bench]
+Usage: python benchmarks/deploy_loop.py [--steps 300] [--episodes 3] [--out-dir reports/deploy_bench]
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=300, help="episode steps at 10 Hz (default 300: 30 s)")
     parser.add_argument("--episodes", type=int, default=3, help="episodes flown (default 3)")
-    parser.add_argument("--out", default=None, help="where the flight log goes (default: a temp dir)")
+    parser.add_argument("--out-dir", default=None, help="where the flight log goes (default: a temp dir)")
     args = parser.parse_args()
-    out = Path(args.out or tempfile.mkdtemp(prefix="deploy_bench_"))
+    out = Path(args.out_dir or tempfile.mkdtemp(prefix="deploy_bench_"))
     doc = json.loads((ROOT / "configs" / "deploy" / "sim_4p2e1o.json").read_text())
     doc.update(
         horizon=args.steps,

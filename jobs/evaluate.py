@@ -1,14 +1,15 @@
 """Ray job entrypoint: evaluate a policy with zoos of unseen partners on tasks.
 
     ray job submit --address http://HEAD:8265 --working-dir . -- \
-        python jobs/evaluate.py --policy greedy|vicsek|PATH --task 4p2e1o|all --zoo zoo1|all --episodes 500 --out DIR
+        python jobs/evaluate.py --policy greedy|vicsek|PATH --task 4p2e1o|all --zoo zoo1|all \
+            --episodes 500 --out-dir DIR
 
 The same protocol and files as ``atdrone evaluate``: every task x zoo cell plays
 --episodes episodes per seed with the policy in the task's learner slots and partners
 drawn from the zoo (``atdrone.teams.evaluation.evaluate_grid``); prints the SUC / COL / AST /
 REW table and writes ``DIR/<policy>_<task>_<zoo>.json`` (per cell: summary and per-seed
 metrics) and ``.csv`` (one row per episode) through ``atdrone.teams.reports``. It runs in the
-job's driver process; on a cluster give --out an absolute path you can read afterwards.
+job's driver process; on a cluster give --out-dir an absolute path you can read afterwards.
 Bad input exits with status 2 and a one-line error.
 """
 
@@ -40,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
     p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default: 0)")
-    p.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
+    p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     return p
 
 
@@ -72,9 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     label = args.policy if args.policy in RULES else Path(args.policy).stem
     stem = f"{label}_{'all' if args.task == 'all' else tasks[0].name}_{'all' if args.zoo == 'all' else zoos[0].name}"
     try:
-        json_path, csv_path = write_report(args.out, stem, cells, args.policy, args.episodes, args.seeds)
+        json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
     except OSError as exc:
-        print(f"{PROG}: error: cannot write the report to {args.out}: {exc}", file=sys.stderr)
+        print(f"{PROG}: error: cannot write the report to {args.out_dir}: {exc}", file=sys.stderr)
         return 1
     played = [c for c in cells if c.evaluation is not None]
     episodes = sum(len(c.evaluation.records) for c in played if c.evaluation is not None)

@@ -48,7 +48,8 @@ def _run(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess
 # ------------------------------------------------------------- the scripts
 def test_evaluate_script_writes_its_outputs(tmp_path: Path) -> None:
     out = tmp_path / "eval"
-    proc = _run(EVALUATE, "--policy", "greedy", "--task", "4p2e1o", "--zoo", "zoo1", "--episodes", "20", "--out", out)
+    args = ("--policy", "greedy", "--task", "4p2e1o", "--zoo", "zoo1", "--episodes", "20", "--out-dir", out)
+    proc = _run(EVALUATE, *args)
     assert proc.returncode == 0, proc.stderr
     assert "jobs/evaluate.py: greedy evaluated on 1 of 1 task x zoo cells, 20 episodes" in proc.stdout
     assert "SUC %" in proc.stdout  # the table, as `atdrone evaluate` prints it
@@ -62,7 +63,7 @@ def test_evaluate_script_writes_its_outputs(tmp_path: Path) -> None:
 
 
 def test_bad_task_exits_non_zero_with_one_line(tmp_path: Path) -> None:
-    proc = _run(EVALUATE, "--policy", "greedy", "--task", "4p9e9o", "--episodes", "5", "--out", tmp_path)
+    proc = _run(EVALUATE, "--policy", "greedy", "--task", "4p9e9o", "--episodes", "5", "--out-dir", tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
@@ -224,7 +225,8 @@ def test_jobs_submitted_to_a_ray_head_succeed(ray_head: str, tmp_path: Path) -> 
     client = JobSubmissionClient(ray_head)
     runtime_env = {"working_dir": str(REPO), "excludes": EXCLUDES}
     evaluate = client.submit_job(
-        entrypoint=f"python jobs/evaluate.py --policy greedy --task 4p2e1o --zoo zoo1 --episodes 10 --out {tmp_path}",
+        entrypoint="python jobs/evaluate.py --policy greedy --task 4p2e1o --zoo zoo1 --episodes 10 "
+        f"--out-dir {tmp_path}",
         runtime_env=runtime_env,
     )
     train = client.submit_job(

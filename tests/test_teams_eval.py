@@ -365,7 +365,7 @@ def test_cli_evaluate_prints_the_table_and_writes_json_and_csv(tmp_path, capsys)
     out, task = tmp_path / "eval", tmp_path / "task.json"
     task.write_text(json.dumps(short_horizon("4p2e1o", 250).to_dict()))
     args = ["evaluate", "--policy", "greedy", "--task", str(task), "--zoo", "zoo1", "--episodes", "20"]
-    rc = main([*args, "--seeds", "0", "1", "--out", str(out), "--no-progress"])
+    rc = main([*args, "--seeds", "0", "1", "--out-dir", str(out), "--no-progress"])
     assert rc == 0
     stdout = capsys.readouterr().out
     assert "greedy: 20 episodes per seed, 2 seeds (0, 1)" in stdout
@@ -388,7 +388,7 @@ def test_cli_evaluate_prints_the_table_and_writes_json_and_csv(tmp_path, capsys)
 
 def test_cli_evaluate_all_tasks_reports_incomplete_zoos_as_missing(tmp_path, capsys):
     args = ["evaluate", "--policy", "vicsek", "--task", "all", "--zoo", "all", "--episodes", "2"]
-    rc = main([*args, "--out", str(tmp_path)])
+    rc = main([*args, "--out-dir", str(tmp_path)])
     assert rc == 0
     captured = capsys.readouterr()
     lines = captured.out.splitlines()
@@ -415,7 +415,7 @@ def test_cli_evaluate_all_tasks_reports_incomplete_zoos_as_missing(tmp_path, cap
 )
 def test_cli_evaluate_refuses_bad_names_with_one_line_and_exit_2(flag, value, message, tmp_path, capsys):
     args = {"--policy": "greedy", "--task": "4p2e1o", "--zoo": "zoo1", flag: value}
-    rc = main(["evaluate", *[x for kv in args.items() for x in kv], "--episodes", "2", "--out", str(tmp_path)])
+    rc = main(["evaluate", *[x for kv in args.items() for x in kv], "--episodes", "2", "--out-dir", str(tmp_path)])
     assert rc == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
