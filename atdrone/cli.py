@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from atdrone.config import TASK_NAMES, ConfigError
+from atdrone.config import TASK_NAMES, ConfigError, read_json
 from atdrone.errors import UserError
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
@@ -175,15 +175,13 @@ def add_train(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    import json
     import logging
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        document = json.loads(Path(args.config).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError("", f"cannot read {args.config}: {exc}") from None
-    if isinstance(document, dict) and "algorithm" in document:
+    document = read_json(args.config)
+    if not isinstance(document, dict):
+        raise ConfigError("", f"{args.config} must hold a JSON object (a train or experiment config)")
+    if "algorithm" in document:
         return _train_service(args)
     return _train_local(args)
 

@@ -24,6 +24,10 @@ from atdrone.errors import UserError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 TASK_NAMES = ("4p2e1o", "4p2e3o", "4p2e5o", "4p3e5o")
+# upper bounds of sizes that allocate memory (the paper's tasks use 4 pursuers, 3 evaders, 5 obstacles, 1000 steps)
+MAX_DRONES = 64
+MAX_OBSTACLES = 256
+MAX_HORIZON = 100_000
 
 
 class ConfigError(UserError, ValueError):
@@ -40,6 +44,15 @@ def _positive(value: float) -> str | None:
 
 def _non_negative(value: float) -> str | None:
     return None if value >= 0 else f"must be >= 0, got {value!r}"
+
+
+def _between(low: int, high: int) -> Any:
+    """A check that an integer lies in [low, high] (sizes that allocate memory have an upper bound)."""
+
+    def check(value: int) -> str | None:
+        return None if low <= value <= high else f"must be between {low} and {high:,}, got {value:,}"
+
+    return check
 
 
 def _interval(value: tuple[float, float]) -> str | None:
@@ -78,9 +91,9 @@ class RespawnRegion:
 class Players:
     """Who plays: counts, speeds, perception, spawn regions and the partner zoo."""
 
-    num_p: int = field(metadata=_check(_positive))
-    num_e: int = field(metadata=_check(_positive))
-    num_ctrl: int = field(metadata=_check(_non_negative))
+    num_p: int = field(metadata=_check(_between(2, MAX_DRONES)))
+    num_e: int = field(metadata=_check(_between(1, MAX_DRONES)))
+    num_ctrl: int = field(metadata=_check(_between(1, MAX_DRONES)))
     num_unctrl: int = field(metadata=_check(_non_negative))
     respawn_region: RespawnRegion
     random_respawn: bool = True
@@ -160,8 +173,8 @@ class TaskSpec:
     capture_range: float = field(default=0.2, metadata=_check(_positive))
     safe_radius: float = field(default=0.1, metadata=_check(_positive))
     collision_distance: float = field(default=0.2, metadata=_check(_positive))
-    task_horizon: int = field(default=1000, metadata=_check(_positive))
-    fps: int = field(default=10, metadata=_check(_positive))
+    task_horizon: int = field(default=1000, metadata=_check(_between(1, MAX_HORIZON)))
+    fps: int = field(default=10, metadata=_check(_between(1, 1000)))
     collision_ends_episode: bool = True
     reward: Reward = field(default_factory=Reward)
 
@@ -325,6 +338,8 @@ def _validate_semantics(cfg: TaskConfig) -> None:
         )
     if p.num_p < 2:
         raise ConfigError("players.num_p", f"must be >= 2 (a team), got {p.num_p}")
+    if len(site.obstacles) > MAX_OBSTACLES:
+        raise ConfigError("site.obstacles", f"at most {MAX_OBSTACLES} obstacles, got {len(site.obstacles):,}")
     w, h = site.boundary.width, site.boundary.height
     for name, ob in site.obstacles.items():
         path = f"site.obstacles.{name}"
@@ -383,10 +398,43 @@ def read_document(name_or_path: str | Path, kind: str, names: tuple[str, ...] = 
     if not path.is_file():
         known = f" (known: {', '.join(names)})" if names else ""
         raise ConfigError("", f"no {kind[:-1]} named {text!r}{known} and no such file")
+    return read_json(path)
+
+
+MAX_DOCUMENT_BYTES = 16 * 2**20  # a config is a few KB; a bigger file is not one
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in seen:
+            raise ConfigError(key, "appears twice in one JSON object (which one was meant?)")
+        seen[key] = value
+    return seen
+
+
+def read_json(path: str | Path) -> Any:
+    """The JSON of a file a user gave: ConfigError for a missing or oversized file, bytes that are not
+    UTF-8, invalid or too deeply nested JSON, and a key given twice in one object (never last-wins)."""
+    path = Path(path)
     try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        if path.stat().st_size > MAX_DOCUMENT_BYTES:
+            raise ConfigError("", f"{path} is over {MAX_DOCUMENT_BYTES // 2**20} MB: not a config document")
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError("", f"{path} is not UTF-8 text: {exc.reason} at byte {exc.start}") from None
+    except IsADirectoryError:
+        raise ConfigError("", f"{path} is a directory, not a JSON file") from None
+    except OSError as exc:
+        raise ConfigError("", f"cannot read {path}: {exc.strerror or exc}") from None
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicates)
+    except json.JSONDecodeError as exc:
         raise ConfigError("", f"{path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ConfigError("", f"{path} is nested too deeply to be a config document") from None
+    except ConfigError as exc:
+        raise ConfigError(exc.path, f"{exc.args[0].split(': ', 1)[1]} (in {path})") from None
 
 
 def load_config(schema: Any, path_or_doc: str | Path | Mapping[str, Any], kind: str, **overrides: Any) -> Any:

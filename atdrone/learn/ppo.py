@@ -16,7 +16,7 @@ from torch import nn
 
 from atdrone.config import ConfigError, parse_document
 from atdrone.models import PolicyModel
-from atdrone.models.networks import ActorCritic, NetConfig, squash_log_prob
+from atdrone.models.networks import NET_LIMITS, ActorCritic, NetConfig, squash_log_prob
 
 
 @dataclass(frozen=True)
@@ -73,6 +73,11 @@ PRESETS: dict[str, PPOConfig] = {
 }
 
 
+# sizes that allocate memory: environments x steps of one update are held at once
+MAX_SAMPLES = 2**24
+PPO_LIMITS = {"num_envs": (1, 65_536), "rollout_steps": (1, 100_000), "epochs": (1, 1000), "minibatch_size": (1, 2**24)}
+
+
 def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", path: str = "ppo") -> PPOConfig:
     """A validated PPOConfig: ``preset`` values overridden by ``document``'s keys."""
     if preset not in PRESETS:
@@ -81,14 +86,18 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
         return PRESETS[preset]
     parse_document(PPOConfig, {**_as_dict(PRESETS[preset]), **document}, path)  # type/unknown-key check
     cfg = replace(PRESETS[preset], **document)
-    for name in ("num_envs", "rollout_steps", "epochs", "minibatch_size", "entity_dim", "hidden"):
-        if getattr(cfg, name) < 1:
-            raise ConfigError(f"{path}.{name}", f"must be >= 1, got {getattr(cfg, name)}")
+    for name, (low, high) in {**PPO_LIMITS, **NET_LIMITS}.items():
+        if not low <= getattr(cfg, name) <= high:
+            raise ConfigError(f"{path}.{name}", f"must be between {low} and {high:,}, got {getattr(cfg, name):,}")
+    if cfg.num_envs * cfg.rollout_steps > MAX_SAMPLES:
+        raise ConfigError(
+            f"{path}.num_envs",
+            f"num_envs x rollout_steps must be <= {MAX_SAMPLES:,} per update, got {cfg.num_envs:,}"
+            f" x {cfg.rollout_steps:,}",
+        )
     for name in ("lr", "clip", "max_grad_norm"):
         if getattr(cfg, name) <= 0:
             raise ConfigError(f"{path}.{name}", f"must be > 0, got {getattr(cfg, name)}")
-    if cfg.history < 0:
-        raise ConfigError(f"{path}.history", f"must be >= 0, got {cfg.history}")
     if cfg.collision_scale < 0:
         raise ConfigError(f"{path}.collision_scale", f"must be >= 0, got {cfg.collision_scale}")
     for name in ("gamma", "gae_lambda"):

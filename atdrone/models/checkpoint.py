@@ -5,13 +5,17 @@ File layout (one file, ``*.pt``):
     line 2  the header, one line of JSON: format, architecture ({"class": name, **config},
             see :mod:`atdrone.models.architectures`), obs_layout_version, task, num_p,
             num_e, algorithm, config, seed, step, git_commit, metrics, created, sha256
-            (of the payload bytes)
+            (of the payload bytes), header_sha256 (of the header's canonical JSON without
+            this field, so every header field and, through sha256, the payload are covered)
     rest    the payload: format 2, the state_dict as a tensor file
             (:mod:`atdrone.models.tensorfile`, safetensors with its own digest);
             format 1 (legacy, older runs), ``torch.save`` of the state_dict.
 ``head -2 file.pt`` shows the provenance. Files are written to a temp name and
-renamed. Loading checks the magic line, the header, the sha256 and the observation
-layout, and refuses a mismatched or corrupted file with a :class:`CheckpointError`.
+renamed. Loading checks the magic line, the header and its digest, the sha256 and the
+observation layout, and refuses a mismatched, edited or corrupted file with a
+:class:`CheckpointError`. A header without ``header_sha256`` (written before it existed)
+loads with a warning; ``python benchmarks/upgrade_checkpoints.py FILE...`` re-writes such
+files with it (the weights unchanged).
 Format 2 loads without unpickling anything; format 1 goes through
 ``torch.load(weights_only=True)``, which unpickles tensors only.
 """
@@ -23,6 +27,7 @@ import hashlib
 import io
 import json
 import subprocess
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +44,7 @@ __all__ = ["FORMAT", "MAGIC", "REQUIRED", "CheckpointError", "load_checkpoint", 
 MAGIC = b"ATDRONE-CHECKPOINT 1\n"
 FORMAT = 2  # the payload format written; 1 (torch.save) is still read
 REQUIRED = ("architecture", "obs_layout_version", "task", "num_p", "num_e", "sha256")
+HEADER_DIGEST = "header_sha256"
 
 
 def git_commit() -> str:
@@ -77,8 +83,16 @@ def save_checkpoint(path: str | Path, model: PolicyModel, header: dict[str, Any]
     missing = [k for k in REQUIRED if k not in full]
     if missing:
         raise ValueError(f"checkpoint header lacks {missing}")
+    full.pop(HEADER_DIGEST, None)
+    full[HEADER_DIGEST] = header_digest(full)
     atomic_write_bytes(path, MAGIC + json.dumps(full, sort_keys=True).encode() + b"\n" + payload)
     return full
+
+
+def header_digest(header: dict[str, Any]) -> str:
+    """sha256 of a header's canonical JSON (sorted keys, compact), without the digest field itself."""
+    body = {k: v for k, v in header.items() if k != HEADER_DIGEST}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def read_header(path: str | Path) -> dict[str, Any]:
@@ -88,6 +102,8 @@ def read_header(path: str | Path) -> dict[str, Any]:
 
 def _read(path: str | Path) -> tuple[dict[str, Any], bytes]:
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a directory, not a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     data = path.read_bytes()
@@ -102,6 +118,14 @@ def _read(path: str | Path) -> tuple[dict[str, Any], bytes]:
         raise CheckpointError(f"{path}: corrupted header: {exc}") from None
     if not isinstance(header, dict) or any(k not in header for k in REQUIRED):
         raise CheckpointError(f"{path}: header lacks one of {list(REQUIRED)}")
+    if HEADER_DIGEST not in header:
+        warnings.warn(
+            f"{path}: the header is not covered by a digest (written before header_sha256 existed); "
+            "re-write it with benchmarks/upgrade_checkpoints.py",
+            stacklevel=3,
+        )
+    elif header[HEADER_DIGEST] != header_digest(header):
+        raise CheckpointError(f"{path}: the header was changed after it was written (header_sha256 mismatch)")
     payload = data[end + 1 :]
     if hashlib.sha256(payload).hexdigest() != header["sha256"]:
         raise CheckpointError(f"{path}: corrupted or truncated weights (sha256 mismatch with the header)")

@@ -54,6 +54,17 @@ class NetConfig:
     proximity: float = 0.15
     history: int = 0
 
+    def __post_init__(self) -> None:
+        """Sizes within :data:`NET_LIMITS`: a header cannot make the loader allocate a huge network."""
+        for name, (low, high) in NET_LIMITS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f"{name} must be an integer between {low} and {high}, got {value!r}")
+
+
+# the sizes a network may have (the paper's uses entity_dim 64, hidden 128): at most ~2e7 parameters
+NET_LIMITS = {"entity_dim": (1, 1024), "hidden": (1, 4096), "history": (0, 64)}
+
 
 def _layer(n_in: int, n_out: int, gain: float = math.sqrt(2)) -> nn.Linear:
     layer = nn.Linear(n_in, n_out)
