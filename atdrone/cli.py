@@ -45,6 +45,23 @@ def _positive_int(text: str) -> int:
     return value
 
 
+MAX_EPISODES = 1_000_000  # episodes of one evaluation cell
+
+
+def _episodes(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_EPISODES:
+        raise argparse.ArgumentTypeError(f"must be <= {MAX_EPISODES:,}, got {value:,}")
+    return value
+
+
+def _seed(text: str) -> int:
+    value = int(text)
+    if not 0 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 2**32 - 1, got {value}")
+    return value
+
+
 def _add_episode_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the episode (default 0)")
     p.add_argument("--frame-every", type=_positive_int, default=2, help="draw every k-th step into the GIF (default 2)")
@@ -287,8 +304,10 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--policy", required=True, help="the learner: greedy, vicsek or a checkpoint PATH")
     p.add_argument("--task", default="4p2e1o", help=f"task name ({', '.join(TASK_NAMES)}), JSON path, or all")
     p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
-    p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default: 0)")
+    p.add_argument(
+        "--episodes", type=_episodes, default=500, help=f"episodes per seed and cell, <= {MAX_EPISODES:,} (default 500)"
+    )
+    p.add_argument("--seeds", type=_seed, nargs="+", default=[0], help="distinct evaluation seeds >= 0 (default: 0)")
     p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -298,17 +317,17 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from atdrone.config import load_task
-    from atdrone.policies.zoo import RULES, ZOO_NAMES, PolicyError, load_zoo, policy_from_spec
-    from atdrone.teams.evaluation import evaluate_grid
+    from atdrone.policies.zoo import RULES, ZOO_NAMES, load_zoo, policy_from_spec
+    from atdrone.teams.evaluation import evaluate_grid, task_fit
     from atdrone.teams.reports import format_table, write_report
 
+    if len(set(args.seeds)) != len(args.seeds):
+        raise ConfigError("--seeds", f"each seed once, got {args.seeds} (a repeated seed replays the same episodes)")
     tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]
     zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
-    try:
-        learner = policy_from_spec(args.policy)
-    except PolicyError as exc:
-        _error(args, exc)
-        return EXIT_USAGE
+    learner = policy_from_spec(args.policy)
+    for note in task_fit(learner, tasks):
+        print(f"atdrone evaluate: warning: {note}", file=sys.stderr)
     for zoo in zoos:
         if zoo.missing:
             print(

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import types
 import typing
 from collections.abc import Mapping
@@ -457,6 +458,25 @@ def require_at_least(cfg: Any, names: tuple[str, ...], minimum: float = 1) -> No
     for name in names:
         if getattr(cfg, name) < minimum:
             raise ConfigError(name, f"must be >= {minimum}, got {getattr(cfg, name)}")
+
+
+def require_at_most(cfg: Any, limits: Mapping[str, float]) -> None:
+    """ConfigError naming the first field of ``limits`` whose value is above its limit."""
+    for name, limit in limits.items():
+        if getattr(cfg, name) > limit:
+            raise ConfigError(name, f"must be <= {limit:,}, got {getattr(cfg, name):,}")
+
+
+RUN_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,99}")
+
+
+def check_run_name(name: str, path: str = "name") -> None:
+    """A run name is a folder under out_dir and part of MLflow names: letters, digits, '.', '_', '-' only,
+    not starting with '.', at most 100 characters (so never '..', '/', ':' or an absolute path)."""
+    if not RUN_NAME.fullmatch(name):
+        raise ConfigError(
+            path, f"{name!r} is not a run name: use letters, digits, '.', '_' and '-' (not first '.'), 1-100 characters"
+        )
 
 
 def load_task(name_or_path: str | Path | Mapping[str, Any] | TaskConfig) -> TaskConfig:

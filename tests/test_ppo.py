@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -13,7 +14,15 @@ from atdrone.envs import BatchedPursuit
 from atdrone.learn.ppo import gae, ppo_config
 from atdrone.learn.rollout import credited_rewards
 from atdrone.learn.trainer import Trainer, load_train_config
-from atdrone.models.checkpoint import CheckpointError, load_checkpoint, read_header, save_checkpoint
+from atdrone.models.checkpoint import (
+    HEADER_DIGEST,
+    MAGIC,
+    CheckpointError,
+    header_digest,
+    load_checkpoint,
+    read_header,
+    save_checkpoint,
+)
 from atdrone.models.networks import ActorCritic, NetConfig, action_log_prob, global_state, squash_log_prob
 from atdrone.policies.base import DroneBatch
 from atdrone.policies.neural import load_policy
@@ -122,13 +131,26 @@ def test_corrupted_checkpoint_is_refused(tmp_path):
         load_checkpoint(path)
 
 
+def _signed(edit):
+    """A header edit signed again (header_sha256 recomputed), as a file from another atdrone would be."""
+
+    def mutate(data: bytes) -> bytes:
+        end = data.index(b"\n", len(MAGIC))
+        header = json.loads(edit(data[len(MAGIC) : end]))
+        header[HEADER_DIGEST] = header_digest(header)
+        return MAGIC + json.dumps(header).encode() + data[end:]
+
+    return mutate
+
+
 @pytest.mark.parametrize(
     "mutate, message",
     [
         (lambda b: b"NOT A CHECKPOINT\n" + b, "magic"),
         (lambda b: b[:30], "header"),
-        (lambda b: b.replace(b'"obs_layout_version": 1', b'"obs_layout_version": 9'), "layout"),
-        (lambda b: b.replace(b'"hidden": 32', b'"hidden": 64'), "architecture"),
+        (lambda b: b.replace(b'"hidden": 32', b'"hidden": 64'), "header was changed"),
+        (_signed(lambda h: h.replace(b'"obs_layout_version": 1', b'"obs_layout_version": 9')), "layout"),
+        (_signed(lambda h: h.replace(b'"hidden": 32', b'"hidden": 64')), "architecture"),
     ],
 )
 def test_mismatched_checkpoint_is_refused(tmp_path, mutate, message):

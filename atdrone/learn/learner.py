@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from atdrone.config import ConfigError
 from atdrone.learn.ppo import PPOConfig, architecture, learning_rate, ppo_update
 from atdrone.learn.rollout import Fragment, concat_fragments
 from atdrone.models import PolicyModel, build_model
@@ -31,10 +32,27 @@ from atdrone.models.tensorfile import load_tensors, save_tensors
 STATE_FORMAT = 1
 
 
+def check_device(name: str, path: str = "device") -> None:
+    """ConfigError unless ``name`` is auto, cpu, or a CUDA device this machine has (cuda, cuda:N)."""
+    if name in ("auto", "cpu"):
+        return
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise ConfigError(path, f"must be auto, cpu, cuda or cuda:N, got {name!r}") from None
+    if device.type != "cuda":
+        raise ConfigError(path, f"must be auto, cpu, cuda or cuda:N, got {name!r}")
+    if not torch.cuda.is_available():
+        raise ConfigError(path, f"{name!r} asks for CUDA, but torch sees no GPU here (use auto or cpu)")
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise ConfigError(path, f"{name!r}: this machine has {torch.cuda.device_count()} GPU(s)")
+
+
 def pick_device(name: str = "auto") -> torch.device:
-    """``auto``: CUDA when torch sees a GPU, else the CPU; or the named device."""
+    """``auto``: CUDA when torch sees a GPU, else the CPU; or the named device (see :func:`check_device`)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    check_device(name)
     return torch.device(name)
 
 

@@ -22,9 +22,19 @@ from typing import Any, Literal
 import pandas as pd
 import torch
 
-from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, load_task, repo_path, require_at_least
+from atdrone.config import (
+    OPTIONAL,
+    ConfigError,
+    check_run_name,
+    check_task_field,
+    load_config,
+    load_task,
+    repo_path,
+    require_at_least,
+    require_at_most,
+)
 from atdrone.fileio import atomic_write_bytes
-from atdrone.learn.learner import Learner, LearnerSpec
+from atdrone.learn.learner import Learner, LearnerSpec, check_device
 from atdrone.learn.ppo import PPOConfig, ppo_config
 from atdrone.learn.rollout import RolloutWorker
 from atdrone.models import build_model
@@ -32,7 +42,7 @@ from atdrone.models.checkpoint import save_checkpoint
 from atdrone.models.networks import ActorCritic
 from atdrone.policies.base import Policy
 from atdrone.policies.neural import NeuralPolicy
-from atdrone.policies.zoo import load_zoo
+from atdrone.policies.zoo import PolicyError, load_zoo
 from atdrone.rundir import RunError, check_resume, refuse_existing
 from atdrone.teams.evaluation import metrics, run_episodes
 
@@ -101,6 +111,18 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     ppo_config(cfg.ppo, cfg.preset)
     if cfg.mode == "best_response" and not cfg.zoo:
         raise ConfigError("zoo", "best_response training needs a zoo")
+    if cfg.zoo and cfg.mode != "best_response":
+        raise ConfigError("zoo", f"only best_response trains with zoo partners; {cfg.mode} would ignore {cfg.zoo!r}")
+    if cfg.zoo:
+        try:
+            load_zoo(cfg.zoo).check()
+        except PolicyError as exc:
+            raise ConfigError("zoo", str(exc)) from None
+    check_run_name(cfg.name)
+    if cfg.seed < 0:
+        raise ConfigError("seed", f"must be >= 0, got {cfg.seed}")
+    require_at_most(cfg, {"eval_episodes": 100_000, "torch_threads": 256, "update_threads": 256})
+    check_device(cfg.device)
     require_at_least(
         cfg, ("total_env_steps", "eval_every", "eval_episodes", "checkpoint_every", "torch_threads", "update_threads")
     )

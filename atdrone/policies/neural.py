@@ -22,7 +22,7 @@ class NeuralPolicy:
     """A trained actor as a zoo policy: batched, mean action by default.
 
     ``num_p`` and ``num_e`` are the task shape the network was trained on (from the
-    checkpoint header; the default is the paper's 4p2e tasks). The network pools
+    checkpoint header; the default is the paper's 4p2e tasks), ``task`` its name. The network pools
     evaders, so it also flies a task with the same team and another number of evaders:
     the evader count is read off the observation width, 4 * (num_p + num_e).
     Per-drone memory (``model.memory``) is keyed by (env, key), grows with the keys it
@@ -37,12 +37,14 @@ class NeuralPolicy:
         seed: int = 0,
         num_p: int = 4,
         num_e: int = 2,
+        task: str = "",
     ) -> None:
         self.model = model
         self.name = name
         self.deterministic = deterministic
         self.num_p = num_p
         self.num_e = num_e
+        self.task = task  # the task it was trained on ("" when unknown)
         self.generator = torch.Generator().manual_seed(seed)
         self.memory: DroneMemory | None = None
         self._obs_dim = 0
@@ -109,4 +111,5 @@ def load_policy(path: str | Path, deterministic: bool = True) -> NeuralPolicy:
         deterministic=deterministic,
         num_p=int(header["num_p"]),
         num_e=int(header["num_e"]),
+        task=str(header.get("task", "")),
     )

@@ -85,6 +85,14 @@ class Zoo:
     def __len__(self) -> int:
         return len(self.spec.members)
 
+    def check(self) -> None:
+        """ZooError unless every member can be built: checkpoint files present, their headers and weights intact.
+
+        What a config that names the zoo calls when it is loaded, so a run does not
+        train for hours and then fail at its final evaluation.
+        """
+        self.policies()
+
     def policies(self) -> list[Policy]:
         """One policy per member, in member order; ZooError when a member is missing."""
         if self.missing:
@@ -108,6 +116,8 @@ def build_policy(spec: MemberSpec) -> Policy:
 def load_checkpoint(path: str | Path) -> Policy:
     """The policy saved in a checkpoint file; PolicyError when it cannot be loaded."""
     path = Path(path)
+    if path.is_dir():
+        raise PolicyError(f"{str(path)!r} is a directory, not a checkpoint file")
     if not path.is_file():
         raise PolicyError(f"no checkpoint file {str(path)!r}")
     from atdrone.policies.neural import load_policy  # torch, only when a checkpoint is loaded
@@ -123,7 +133,7 @@ def policy_from_spec(spec: str | Path) -> Policy:
     text = str(spec)
     if text in RULES:
         return RULES[text]()
-    if not Path(text).is_file():
+    if not Path(text).exists():
         raise PolicyError(f"no policy {text!r}: give a rule ({', '.join(RULES)}) or a checkpoint file")
     return load_checkpoint(text)
 

@@ -22,9 +22,18 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from atdrone.config import OPTIONAL, ConfigError, check_task_field, load_config, read_document, require_at_least
+from atdrone.config import (
+    OPTIONAL,
+    ConfigError,
+    check_run_name,
+    check_task_field,
+    load_config,
+    read_document,
+    require_at_least,
+    require_at_most,
+)
 from atdrone.learn.ppo import ppo_config
-from atdrone.policies.zoo import load_zoo
+from atdrone.policies.zoo import PolicyError, load_zoo
 
 # integer settings that must be >= 1 (jobs/train.py also offers them as overrides)
 POSITIVE_INTS = (
@@ -35,6 +44,15 @@ POSITIVE_INTS = (
     "final_episodes",
     "learner_threads",
 )
+# upper bounds: evaluation episodes and rollout workers allocate, generations bound a run's length
+LIMITS = {
+    "generations": 10_000,
+    "updates_per_generation": 1_000_000,
+    "num_workers": 256,
+    "eval_episodes": 100_000,
+    "final_episodes": 1_000_000,
+    "learner_threads": 256,
+}
 # keys of earlier, flat documents -> where they live now
 MOVED = {
     "population_size": 'the algorithm\'s section, e.g. "hola": {"population_size": 4}',
@@ -121,9 +139,13 @@ def load_experiment(path_or_doc: str | Path | dict[str, Any], **overrides: Any) 
     ALGORITHMS[cfg.algorithm].check_experiment(cfg.algorithm_config(), cfg, cfg.algorithm)  # "<algorithm>.<key>"
     if cfg.final_zoo:
         try:
-            load_zoo(cfg.final_zoo)
-        except ConfigError as exc:
+            load_zoo(cfg.final_zoo).check()
+        except (ConfigError, PolicyError) as exc:
             raise ConfigError("final_zoo", str(exc)) from None
+    check_run_name(cfg.name)
+    require_at_most(cfg, LIMITS)
+    if cfg.seed < 0:
+        raise ConfigError("seed", f"must be >= 0, got {cfg.seed}")
     if cfg.learner_gpus < 0:
         raise ConfigError("learner_gpus", f"must be >= 0, got {cfg.learner_gpus}")
     return cfg

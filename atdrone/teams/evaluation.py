@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from atdrone.config import TaskConfig, load_task
+from atdrone.config import ConfigError, TaskConfig, load_task
 from atdrone.envs.core import CAPTURED, DONE_REASONS, BatchedPursuit
 from atdrone.envs.geometry import NUM_WALLS
 from atdrone.policies.base import Policy
@@ -117,6 +117,34 @@ def crash_breakdown(records: pd.DataFrame) -> dict[str, float]:
     """% of episodes whose ending collision involved each of CRASH_KINDS (an episode may count twice)."""
     counts = records["crash"].fillna("").str.split("+").explode().value_counts()
     return {kind: 100.0 * float(counts.get(kind, 0)) / len(records) for kind in CRASH_KINDS}
+
+
+def task_fit(policy: Policy, tasks: Sequence[TaskConfig]) -> list[str]:
+    """Check a trained policy against the tasks it is asked to play.
+
+    A network reads 4 * (num_p + num_e) numbers per drone and pools the evaders, so a
+    different pursuer count is a different observation layout: ConfigError. Another
+    evader count or another task of the same shape plays, with a note (returned) saying so.
+    """
+    trained_on = getattr(policy, "task", "")
+    num_p, num_e = getattr(policy, "num_p", None), getattr(policy, "num_e", None)
+    if not trained_on or num_p is None:  # a rule policy plays any task
+        return []
+    notes = []
+    for task in tasks:
+        players = task.players
+        if players.num_p != num_p:
+            raise ConfigError(
+                "--task",
+                f"{policy.name} was trained on {trained_on} ({num_p} pursuers): its observation layout does not fit "
+                f"{task.name} ({players.num_p} pursuers)",
+            )
+        if players.num_e != num_e or task.name != trained_on:
+            notes.append(
+                f"{policy.name} was trained on {trained_on} ({num_p}p{num_e}e) and plays {task.name} "
+                f"({players.num_p}p{players.num_e}e): an unseen task, not its own"
+            )
+    return notes
 
 
 def run_episodes(
