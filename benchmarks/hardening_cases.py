@@ -26,6 +26,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_PPO = {"num_envs": 8, "rollout_steps": 32, "minibatch_size": 256, "entity_dim": 16, "hidden": 32}
+DUPLICATE_KEY = b'{"name": "a", "name": "b", "task": "4p2e1o", "total_env_steps": 256, "eval_every": 1000}'
 TINY_TRAIN = {"name": "tiny", "task": "4p2e1o", "total_env_steps": 256, "eval_every": 1000, "eval_episodes": 2}
 
 
@@ -71,6 +72,7 @@ def _eval_out(tmp: Path) -> list[str]:
         capture_output=True,
         text=True,
         env=os.environ.copy(),
+        cwd=tmp,
         check=False,
     ).stdout
     return ["--out-dir" if "--out-dir" in text else "--out", str(tmp / "e")]
@@ -84,6 +86,7 @@ def _policy(tmp: Path) -> Path:
         capture_output=True,
         timeout=120,
         env=os.environ.copy(),
+        cwd=tmp,
         check=False,
     )
     return tmp / "runs" / "tiny" / "last.pt"
@@ -251,13 +254,13 @@ CASES = [
     Case("evaluate --episodes 10**9", _evaluate("--episodes", str(10**9)), timeout_s=30),
     Case("evaluate --seeds -1", _evaluate("--episodes", "2", "--seeds", "-1")),
     Case("evaluate --seeds 0 0", _evaluate("--episodes", "2", "--seeds", "0", "0")),
-    Case("task with horizon 10**12", _task(task_horizon=10**12), timeout_s=30),
+    Case("task with horizon 10**12", _task(**{"task.task_horizon": 10**12}), timeout_s=30),
     Case("task with num_e 10**9", _task(**{"players.num_e": 10**9}), timeout_s=30),
-    Case("task with num_ctrl 0", _task(**{"players.num_ctrl": 0})),
+    Case("task with num_ctrl 0", _task(**{"players.num_ctrl": 0, "players.num_unctrl": 4})),
     Case("train config not UTF-8", _train_raw(b'{"name": "\xff\xfe"}')),
     Case("train config a JSON list", _train_raw(b"[1, 2]")),
     Case("train config nested 100000 deep", _train_raw(b"[" * 100_000 + b"]" * 100_000)),
-    Case("train config with a duplicate key", _train_raw(b'{"name": "a", "name": "b", "task": "4p2e1o"}')),
+    Case("train config with a duplicate key", _train_raw(DUPLICATE_KEY)),
     Case("train config seed -1", _train(seed=-1)),
     Case("train config device banana", _train(device="banana")),
     Case("train config hidden 10**6", _train(ppo={**TINY_PPO, "hidden": 10**6}), timeout_s=60),
@@ -270,7 +273,7 @@ CASES = [
 def _registry(tmp: Path) -> Path:
     path = tmp / "r.db"
     code = f"from atdrone.registry import Registry; Registry({str(path)!r}).close()"
-    subprocess.run([sys.executable, "-c", code], check=True, env=os.environ.copy(), timeout=60)
+    subprocess.run([sys.executable, "-c", code], check=True, env=os.environ.copy(), cwd=tmp, timeout=60)
     return path
 
 
