@@ -325,3 +325,28 @@ def test_a_run_the_cluster_cannot_place_is_refused_at_once(local_ray, tmp_path):
     workers = load_experiment(_service(tmp_path, "cpus", num_workers=4))
     with pytest.raises(RunError, match=r"num_workers 4: one CPU per rollout worker, the cluster has 2"):
         check_schedulable(workers)
+
+
+# ------------------------------------------------------------------ progress within a generation
+def test_the_coordinator_reports_what_a_generation_is_doing(local_ray, tmp_path):
+    from atdrone.population import ALGORITHMS
+    from atdrone.registry import registry_actor
+    from atdrone.service.coordinator import Coordinator
+    from atdrone.service.experiment import registry_name
+
+    cfg = load_experiment(_service(tmp_path, "progress_t", updates_per_generation=3))
+    registry = registry_actor(tmp_path / "p.db", name=registry_name(cfg.name))
+    coordinator = Coordinator.options(max_concurrency=2).remote(cfg, ALGORITHMS["hola"], str(tmp_path), None, registry)
+    seen: list[str] = []
+    for _ in range(2):  # generation 0 trains Pi_0; generation 1 plays G'_1, then trains
+        ref = coordinator.run_generation.remote()
+        while not ray.wait([ref], timeout=0.02)[0]:
+            line = ray.get(coordinator.progress.remote())
+            if line and (not seen or seen[-1] != line):
+                seen.append(line)
+        ray.get(ref)
+    ray.kill(coordinator)
+    ray.kill(registry)
+    assert "train: learner 1, update 3/3" in seen or "train: learner 1, update 2/3" in seen, seen
+    assert any(line.startswith("evaluate: ") and "matches" in line for line in seen), seen
+    assert any(line.startswith("zoo: ") and "zoo1" in line for line in seen), seen
