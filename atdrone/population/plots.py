@@ -1,74 +1,140 @@
-"""Pictures of a population: the preference hypergraph and the cross-play heatmap."""
+"""Pictures of a population: the preference hypergraph and the cross-play heatmap.
+
+Each picture has a builder that returns the matplotlib Figure (what the tests read:
+labels, colour bars, arrows) and a writer that saves it as a PNG atomically.
+"""
 
 from __future__ import annotations
 
 import io
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from atdrone.fileio import atomic_write_bytes
 
 
-def _figure(width: float, height: float) -> tuple[Any, Any, Any]:
+def _pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
     from matplotlib import pyplot as plt
 
-    return plt, *plt.subplots(figsize=(width, height), dpi=100)
+    return plt
 
 
-def _save(plt: Any, fig: Any, path: Path) -> None:
+def save_figure(fig: Any, path: Path) -> Path:
+    """Write ``fig`` as a PNG (temp name, then rename) and close it."""
     buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png")
-    plt.close(fig)
+    fig.savefig(buf, format="png", bbox_inches="tight")
+    _pyplot().close(fig)
     atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+# ------------------------------------------------------------------ cross-play
+def crossplay_figure(table: pd.DataFrame, title: str = "cross-play SUC", metric: str = "SUC") -> Any:
+    """A member x partner heatmap of a cross-play matrix (rows: the member, columns: its partner; NaN blank).
+
+    Axis labels, a colour bar labelled with the metric, cell values, and a title wrapped
+    to the figure's width; tick labels shrink as members are added (readable to ~30).
+    """
+    plt = _pyplot()
+    n_cols, n_rows = len(table.columns), len(table.index)
+    width, height = 2.8 + 0.5 * max(n_cols, 4), 2.2 + 0.42 * max(n_rows, 4)
+    fig, ax = plt.subplots(figsize=(width, height), dpi=100, layout="constrained")
+    values = table.to_numpy(dtype=float)
+    percent = metric in ("SUC", "COL")
+    im = ax.imshow(values, cmap="viridis", vmin=0 if percent else None, vmax=100 if percent else None, aspect="auto")
+    tick = max(5.0, 9.0 - 0.15 * max(n_cols, n_rows))
+    ax.set_xticks(range(n_cols), [str(c) for c in table.columns], rotation=55, ha="right", fontsize=tick)
+    ax.set_yticks(range(n_rows), [str(i) for i in table.index], fontsize=tick)
+    ax.set_xlabel("partner", fontsize=9)
+    ax.set_ylabel("member", fontsize=9)
+    if n_cols * n_rows <= 400:  # numbers in the cells while they stay legible
+        finite = values[np.isfinite(values)]
+        middle = float(np.nanmean(finite)) if finite.size else 0.0
+        for (i, j), v in np.ndenumerate(values):
+            if np.isfinite(v):
+                ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=tick - 1, color="w" if v < middle else "k")
+    bar = fig.colorbar(im, ax=ax, shrink=0.85)
+    bar.set_label(f"{metric} (%)" if percent else metric, fontsize=9)
+    ax.set_title(_wrap(title, width), fontsize=9)
+    return fig
+
+
+def crossplay_heatmap(table: pd.DataFrame, path: Path, title: str = "cross-play SUC", metric: str = "SUC") -> Path:
+    """Save :func:`crossplay_figure` as a PNG."""
+    return save_figure(crossplay_figure(table, title, metric), path)
+
+
+def _wrap(title: str, width_in: float, points: float = 9.0) -> str:
+    """The title broken into lines that fit ``width_in`` inches at ``points`` pt (about 0.55 em per character)."""
+    chars = max(20, int(width_in * 72 / (0.55 * points)))
+    return "\n".join(textwrap.wrap(title, chars)) or title
+
+
+# ------------------------------------------------------------------ hypergraph
+def hypergraph_figure(weights: dict[str, float], preference: dict[str, list[str]], eta: dict[str, float]) -> Any:
+    """Members on a circle coloured by eta, with an arrow from each member to every co-member of its preferred team.
+
+    weights: team ("a|b|c") -> weight (drawn as light grey hyperedges); preference:
+    member -> its preferred team. Arrows (networkx) stop at the node borders; a colour bar
+    is the key for eta (preference centrality); members without eta are white.
+    """
+    import networkx as nx
+
+    plt = _pyplot()
+    nodes = sorted(set(eta) | {m for team in weights for m in team.split("|")} | set(preference))
+    size = 6.0 + 0.12 * len(nodes)
+    fig, ax = plt.subplots(figsize=(size + 1.2, size), dpi=100, layout="constrained")
+    pos = {
+        n: (math.cos(2 * math.pi * i / len(nodes)), math.sin(2 * math.pi * i / len(nodes))) for i, n in enumerate(nodes)
+    }
+    for key in weights:  # every hyperedge of G'_t, as a light closed polygon
+        members = sorted(set(key.split("|")))
+        ring = [*members, members[0]]
+        ax.plot([pos[m][0] for m in ring], [pos[m][1] for m in ring], color="0.88", lw=0.8, zorder=0)
+    graph = nx.DiGraph()
+    graph.add_nodes_from(nodes)
+    graph.add_edges_from((n, m) for n, team in preference.items() for m in set(team) - {n})
+    node_size = 900
+    cmap = plt.get_cmap("plasma")
+    colours = [cmap(eta[n]) if n in eta else (1.0, 1.0, 1.0, 1.0) for n in nodes]
+    nx.draw_networkx_nodes(graph, pos, ax=ax, node_size=node_size, node_color=colours, edgecolors="k")
+    nx.draw_networkx_edges(
+        graph,
+        pos,
+        ax=ax,
+        node_size=node_size,
+        arrows=True,
+        arrowstyle="-|>",
+        arrowsize=14,
+        width=1.2,
+        edge_color="tab:blue",
+        connectionstyle="arc3,rad=0.08",
+    )
+    for n in nodes:
+        x, y = pos[n]
+        label = f"{n}\neta {eta[n]:.2f}" if n in eta else f"{n}\n(no eta yet)"
+        ax.text(1.28 * x, 1.28 * y, label, ha="center", va="center", fontsize=7)
+    mappable = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0.0, 1.0))
+    bar = fig.colorbar(mappable, ax=ax, shrink=0.7)
+    bar.set_label("eta (preference centrality: in-degree / degree)", fontsize=8)
+    ax.set_xlim(-1.6, 1.6)
+    ax.set_ylim(-1.6, 1.6)
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    ax.set_title("preference hypergraph: an arrow from each member to its preferred team's members", fontsize=9)
+    return fig
 
 
 def draw_hypergraph(
     weights: dict[str, float], preference: dict[str, list[str]], eta: dict[str, float], path: Path
-) -> None:
-    """Members on a circle (size: eta); each member's preferred team drawn as arrows to its co-members.
-
-    weights: team ("a|b|c|d") -> weight; preference: member -> its preferred team.
-    """
-    plt, fig, ax = _figure(5.5, 5.5)
-    nodes = sorted(set(eta) | {m for team in weights for m in team.split("|")})
-    pos = {
-        n: (math.cos(2 * math.pi * i / len(nodes)), math.sin(2 * math.pi * i / len(nodes))) for i, n in enumerate(nodes)
-    }
-    for key in weights:
-        distinct = sorted(set(key.split("|")))
-        xs = [pos[m][0] for m in distinct] + [pos[distinct[0]][0]]
-        ys = [pos[m][1] for m in distinct] + [pos[distinct[0]][1]]
-        ax.plot(xs, ys, color="0.85", lw=0.8, zorder=1)
-    for node, team in preference.items():
-        for other in set(team) - {node}:
-            (x0, y0), (x1, y1) = pos[node], pos[other]
-            ax.annotate("", (x1, y1), (x0, y0), arrowprops={"arrowstyle": "->", "color": "tab:blue", "alpha": 0.6})
-    for n in nodes:
-        e = eta.get(n, 0.0)
-        ax.scatter(*pos[n], s=300 + 1500 * e, color="tab:orange", zorder=3, edgecolor="k")
-        ax.text(pos[n][0], pos[n][1] - 0.18, f"{n}\neta {e:.2f}", ha="center", va="top", fontsize=7)
-    ax.set_xlim(-1.5, 1.5)
-    ax.set_ylim(-1.6, 1.4)
-    ax.set_axis_off()
-    ax.set_title("preference hypergraph (arrows: each member's best team)", fontsize=9)
-    _save(plt, fig, path)
-
-
-def crossplay_heatmap(table: pd.DataFrame, path: Path, title: str = "cross-play SUC") -> None:
-    """A member x member heatmap of a cross-play matrix (NaN cells left blank)."""
-    plt, fig, ax = _figure(1.5 + 0.55 * len(table.columns), 1.2 + 0.5 * len(table.index))
-    im = ax.imshow(table.to_numpy(dtype=float), cmap="viridis", vmin=0, vmax=100)
-    ax.set_xticks(range(len(table.columns)), [str(c) for c in table.columns], rotation=60, ha="right", fontsize=7)
-    ax.set_yticks(range(len(table.index)), [str(i) for i in table.index], fontsize=7)
-    for (i, j), v in pd.DataFrame(table.to_numpy(dtype=float)).stack().items():
-        ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=7, color="w" if v < 60 else "k")
-    fig.colorbar(im, ax=ax, shrink=0.8)
-    ax.set_title(title, fontsize=9)
-    _save(plt, fig, path)
+) -> Path:
+    """Save :func:`hypergraph_figure` as a PNG."""
+    return save_figure(hypergraph_figure(weights, preference, eta), path)
