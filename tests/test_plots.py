@@ -47,3 +47,23 @@ def test_the_hypergraph_shows_each_preference_as_an_arrow_and_a_key_for_eta():
     assert bar_ax.get_ylabel().startswith("eta")
     labels = {t.get_text() for t in ax.texts}
     assert {"a\neta 0.50", "c\neta 0.00", "l\n(no eta yet)"} <= labels
+
+
+def test_the_showcase_is_a_whole_episode_with_zoo_partners_and_a_caption():
+    from atdrone.policies.rules import GreedyPolicy
+    from atdrone.policies.zoo import load_zoo
+    from atdrone.teams.replay import showcase
+
+    zoo = load_zoo("zoo2")
+    policy = GreedyPolicy()
+    policy.name = "member-x"
+    frames, summary = showcase("4p2e1o", policy, zoo, seed=0, tries=3, frame_every=7)
+    steps, k = summary["steps"], 7
+    assert summary["outcome"] in ("captured", "collision", "timeout")  # played to its end, not cut
+    assert len(frames) == 1 + steps // k + (1 if steps % k else 0)  # every 7th step, the first and the last
+    assert set(summary["team"]["partners"]) <= set(zoo.names) and len(summary["team"]["partners"]) == 2
+    partners = ", ".join(summary["team"]["partners"])
+    assert summary["caption"].startswith(f"member-x + {partners}: {summary['outcome']} in {steps} steps")
+    if summary["outcome"] != "captured":  # no seed of the three captured: the longest episode was kept
+        lengths = [showcase("4p2e1o", policy, zoo, seed=s, tries=1, frame_every=10**9)[1]["steps"] for s in range(3)]
+        assert steps == max(lengths)

@@ -85,6 +85,16 @@ class FrameRenderer:
         self.status = self.figure.text(0.03, 1.0 - 0.36 / total, "", fontsize=8, va="center", family="monospace")
         self._dynamic: list[Any] = []
 
+    def _fit_width(self, text: Any, largest: float = 10.0, smallest: float = 6.0) -> None:
+        """Shrink ``text`` (from ``largest`` pt down to ``smallest``) until it fits inside the frame's width."""
+        renderer = self.canvas.get_renderer()
+        width = self.figure.bbox.width * 0.96
+        size = largest
+        text.set_fontsize(size)
+        while size > smallest and text.get_window_extent(renderer=renderer).x1 > width:
+            size -= 0.5
+            text.set_fontsize(size)
+
     def draw(
         self, state: PursuitState | None = None, title: str | None = None, trails: np.ndarray | None = None
     ) -> np.ndarray:
@@ -177,6 +187,7 @@ class FrameRenderer:
 
         t = int(s.t[k])
         self.title.set_text(title if title is not None else cfg.name)
+        self._fit_width(self.title)
         self.status.set_text(
             f"t = {t} / {cfg.task.task_horizon}    captured {int(captured.sum())}/{core.num_e}"
             f"    return {float(s.ep_return[k]):+.1f}"

@@ -378,13 +378,15 @@ def _log_best(tracker: Any, best: str, score: float | None, run_dir: Path, cfg: 
     if cfg.gif:
         from atdrone.envs.render import save_gif
         from atdrone.policies.neural import NeuralPolicy
-        from atdrone.teams.replay import record_episode
+        from atdrone.policies.zoo import load_zoo
+        from atdrone.teams.replay import showcase
 
-        policy = NeuralPolicy(model, name=best, num_p=header["num_p"], num_e=header["num_e"])
-        frames, _ = record_episode(cfg.task, seed=cfg.seed, policy=policy, frame_every=4, max_steps=400)
-        gif = run_dir / "best.gif"
-        save_gif(frames, gif, fps=10)
+        policy = NeuralPolicy(model, name=best, num_p=header["num_p"], num_e=header["num_e"], task=cfg.task)
+        zoo = load_zoo(cfg.final_zoo) if cfg.final_zoo else None
+        frames, episode = showcase(cfg.task, policy, zoo, seed=cfg.seed)
+        gif = save_gif(frames, run_dir / "best.gif", fps=10)
         tracker.log_artifact(gif)
+        tracker.set_tags({"atdrone.best_gif": episode["caption"]})
     tracker.log_dict(header, "best_member_header.json")
     return f"models:/{model_name(cfg)}/{version}"
 

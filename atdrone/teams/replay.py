@@ -114,3 +114,38 @@ def _actor(
         return lambda obs: drones.act(DroneBatch.all_slots(obs, core.poses()))
     steer = policy
     return lambda obs: steer(obs, core)
+
+
+def showcase(
+    task: TaskConfig | str,
+    policy: DronePolicy,
+    partners: Zoo | None,
+    seed: int = 0,
+    tries: int = 8,
+    frame_every: int = 5,
+) -> tuple[list[np.ndarray], dict[str, Any]]:
+    """A whole, representative episode of ``policy`` with ``partners``, drawn with a caption.
+
+    Plays seeds ``seed, seed + 1, ...`` (up to ``tries``, each to its end) and keeps the
+    first that captures every evader, else the longest; then draws that episode whole
+    (every ``frame_every``-th step, the first and the last). The caption (each frame's
+    title, and ``summary["caption"]``) names the member, its partners and the outcome.
+    """
+    best: dict[str, Any] | None = None
+    for s in range(seed, seed + max(1, tries)):
+        _, summary = record_episode(task, s, policy, frame_every=10**9, trails=False, partners=partners)
+        if best is None or summary["steps"] > best["steps"] or summary["outcome"] == "captured":
+            best = summary
+        if summary["outcome"] == "captured":
+            break
+    assert best is not None
+    mates = ", ".join(best.get("team", {}).get("partners", [])) or "itself"
+    caption = (
+        f"{getattr(policy, 'name', 'policy')} + {mates}: {best['outcome']} in {best['steps']} steps "
+        f"({best['captured']}/{best['num_e']} caught), seed {best['seed']}"
+    )
+    frames, summary = record_episode(
+        task, best["seed"], policy, frame_every=frame_every, title=caption, partners=partners
+    )
+    summary["caption"] = caption
+    return frames, summary
