@@ -210,11 +210,17 @@ def test_resume_continues_from_saved_step_with_equal_parameters(tmp_path):
         strict=True,
     )
     for a, b in moments:
-        assert torch.equal(a["exp_avg"], b["exp_avg"])
-    # and both continue identically from there
-    torch.manual_seed(0)
-    second.update_once()
-    assert second.env_steps == 4 * 8 * 32
+        assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"])
+    assert second.history == first.history
+    # and both continue identically from there: the same fragment, update, weights and statistics
+    stats = [t.update_once() for t in (first, second)]
+    assert second.env_steps == first.env_steps == 4 * 8 * 32
+    timing = ("perf/",)
+    assert {k: v for k, v in stats[0].items() if not k.startswith(timing)} == {
+        k: v for k, v in stats[1].items() if not k.startswith(timing)
+    }
+    for (name, a), (_, b) in zip(first.model.state_dict().items(), second.model.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name
 
 
 def test_train_config_errors_name_the_field(tmp_path):

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import pandas as pd
 import torch
 
@@ -164,11 +165,22 @@ class Trainer:
             with torch.no_grad():
                 self.model.log_std.fill_(math.log(cfg.start_std))
         self.partners: list[Policy] = load_zoo(cfg.zoo).policies() if cfg.mode == "best_response" else []
-        self.worker = RolloutWorker(self.task, cfg.seed, self.model.architecture(), self.ppo, partners=self.partners)
+        self.worker = self._fresh_worker(0)
         self.tracker = tracker
         self.env_steps = 0
         self.history: list[dict[str, float]] = []
         self.run_id: str | None = None
+
+    def _fresh_worker(self, updates: int) -> RolloutWorker:
+        """The rollout worker of the stretch that starts after ``updates`` updates: new environments, seeded
+        from (seed, updates), so a run resumed from a save collects exactly what the uninterrupted run did
+        (each save starts the next stretch in both)."""
+        seed = (
+            self.cfg.seed
+            if updates == 0
+            else int(np.random.SeedSequence([self.cfg.seed, updates]).generate_state(1)[0])
+        )
+        return RolloutWorker(self.task, seed, self.model.architecture(), self.ppo, partners=self.partners)
 
     def _start_from(self, checkpoint: str) -> None:
         """Take a checkpoint's weights: the same architecture, or a narrower one widened with zero weights."""
@@ -202,6 +214,7 @@ class Trainer:
         save_checkpoint(ckpt, self.model, self.header(metrics_now))
         extra = {"env_steps": self.env_steps, "history": self.history, "run_id": self.run_id}
         self.learner.save(self.run_dir / STATE_FILE, extra)
+        self.worker = self._fresh_worker(self.updates)
         return ckpt
 
     def header(self, metrics_now: dict[str, float] | None = None) -> dict[str, Any]:
@@ -230,6 +243,7 @@ class Trainer:
             return False
         extra = self.learner.load(state_path)
         self.env_steps, self.history, self.run_id = extra["env_steps"], extra["history"], extra["run_id"]
+        self.worker = self._fresh_worker(self.updates)
         log.info("resumed %s at %d env steps", self.run_dir, self.env_steps)
         return True
 
