@@ -13,6 +13,7 @@ from atdrone.config import CONFIG_DIR, ConfigError, load_task
 from atdrone.learn.trainer import load_train_config
 from atdrone.models.checkpoint import save_checkpoint
 from atdrone.models.networks import ActorCritic, NetConfig
+from atdrone.policies.zoo import ZooError, load_zoo
 from atdrone.service.experiment import load_experiment
 
 TRAIN = {"name": "tiny", "task": "4p2e1o", "total_env_steps": 256, "eval_every": 1000, "eval_episodes": 2}
@@ -188,3 +189,14 @@ def test_an_experiment_is_refused_when_loaded_not_after_training(tmp_path):
 def test_a_best_response_zoo_with_a_missing_checkpoint_is_refused_when_loaded(tmp_path):
     with pytest.raises(ConfigError, match=r"^zoo: .*gone"):
         load_train_config({**TRAIN, "mode": "best_response", "zoo": _missing_zoo(tmp_path)})
+
+
+def test_evaluate_with_a_zoo_missing_a_checkpoint_skips_it_and_says_so(tmp_path, capsys):
+    missing = _missing_zoo(tmp_path)
+    argv = ["evaluate", "--policy", "greedy", "--episodes", "2", "--out-dir", str(tmp_path / "o"), "--no-progress"]
+    assert main([*argv, "--zoo", missing]) == 1  # nothing left to evaluate
+    err = capsys.readouterr().err
+    assert "warning: zoo broken is missing gone; its cells are skipped" in err
+    assert "error: no zoo has all its members; nothing to evaluate" in err
+    with pytest.raises(ZooError, match=r"zoo 'broken' is incomplete: 'gone' needs nowhere/gone\.pt"):
+        load_zoo(missing).policies()
