@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import torch
 
 from atdrone.config import ConfigError
 from atdrone.envs import BatchedPursuit
-from atdrone.learn.ppo import gae, ppo_config
+from atdrone.learn.ppo import PPOConfig, gae, ppo_config, ppo_update
 from atdrone.learn.rollout import credited_rewards
 from atdrone.learn.trainer import Trainer, load_train_config
 from atdrone.models.checkpoint import (
@@ -357,3 +358,74 @@ def test_a_run_with_history_starts_from_a_checkpoint_without_it(tmp_path):
     assert np.isfinite(br.update_once()["train/value_loss"])
     with pytest.raises(ConfigError, match="init_checkpoint"):
         Trainer(_tiny(tmp_path, name="none", init_checkpoint=str(tmp_path / "missing.pt")))
+
+
+class _Tiny(torch.nn.Module):
+    """A stand-in policy with one mean, one log-std and one value, the same for every input."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.mu = torch.nn.Parameter(torch.zeros(()))
+        self.log_std = torch.nn.Parameter(torch.zeros(()))
+        self.v = torch.nn.Parameter(torch.zeros(()))
+
+    def dist(self, inputs: torch.Tensor, num_e: int) -> torch.distributions.Normal:
+        shape = inputs.shape[:-1]
+        return torch.distributions.Normal(self.mu.expand(shape), self.log_std.exp().expand(shape))
+
+    def value(self, inputs, num_e, state=None, num_p=0):
+        return self.v.expand(inputs.shape[:-1])
+
+    def parameter_groups(self):
+        return [self.mu, self.log_std], [self.v]
+
+
+def _worked_batch(ratios: list[float], adv: list[float], ret: list[float], model: _Tiny) -> dict[str, np.ndarray]:
+    """obs and actions at u = 0, with the old log-probabilities that make the new/old ratios ``ratios``."""
+    n = len(ratios)
+    obs = np.zeros((n, 3))
+    u = np.zeros(n)
+    with torch.no_grad():
+        logp = squash_log_prob(model.dist(torch.as_tensor(obs), 2), torch.as_tensor(u)).numpy()
+    return {"obs": obs, "u": u, "logp": logp - np.log(ratios), "adv": np.array(adv), "ret": np.array(ret)}
+
+
+def _worked_cfg(**kw: float) -> PPOConfig:
+    base = {"epochs": 1, "minibatch_size": 2, "clip": 0.2, "vf_coef": 0.5, "ent_coef": 0.0, "max_grad_norm": 10.0}
+    return replace(PPOConfig(), normalize_advantages=False, **{**base, **kw})
+
+
+def test_ppo_update_clips_the_surrogate_as_the_paper_defines_it():
+    """Ratios 1.5 (A = +1) and 0.5 (A = -1) with clip 0.2: both terms take the clipped branch, so
+    L = -mean(1.2 * 1, 0.8 * -1) = -0.2 and the policy gets no gradient (SGD leaves mu and std)."""
+    model = _Tiny()
+    optimizer = torch.optim.SGD(model.parameters(), lr=1.0)
+    batch = _worked_batch([1.5, 0.5], adv=[1.0, -1.0], ret=[0.0, 0.0], model=model)
+    stats = ppo_update(model, optimizer, batch, _worked_cfg(), 2, 4, torch.Generator().manual_seed(0))
+    assert stats["policy_loss"] == pytest.approx(-0.2)
+    assert stats["clipfrac"] == 1.0
+    assert model.mu.item() == 0.0 and model.log_std.item() == 0.0
+    # inside the trust region (ratio 1.1, A = +1) the surrogate is r * A: d(-r)/d(mu) = -r * d(log p)/d(mu) = 0 at
+    # u = mu = 0, but d(-r)/d(log std) = -r * (u^2 / std^2 - 1) = 1.1: one SGD step of lr 1 moves log std by -1.1
+    model = _Tiny()
+    optimizer = torch.optim.SGD(model.parameters(), lr=1.0)
+    batch = _worked_batch([1.1, 1.1], adv=[1.0, 1.0], ret=[0.0, 0.0], model=model)
+    stats = ppo_update(model, optimizer, batch, _worked_cfg(), 2, 4, torch.Generator().manual_seed(0))
+    assert stats["policy_loss"] == pytest.approx(-1.1) and stats["clipfrac"] == 0.0
+    assert model.log_std.item() == pytest.approx(-1.1)
+
+
+def test_ppo_update_value_loss_and_gradient_clipping_by_hand():
+    """Value 0 against returns 1 and 3: value loss 0.5 * mean(1, 9) = 2.5; its gradient vf_coef * mean(v - ret)
+    = 0.5 * -2 = -1 has norm 1, clipped to max_grad_norm 0.4, so SGD (lr 1) moves v to +0.4."""
+    model = _Tiny()
+    optimizer = torch.optim.SGD(model.parameters(), lr=1.0)
+    batch = _worked_batch([1.0, 1.0], adv=[0.0, 0.0], ret=[1.0, 3.0], model=model)
+    stats = ppo_update(model, optimizer, batch, _worked_cfg(max_grad_norm=0.4), 2, 4, torch.Generator().manual_seed(0))
+    assert stats["value_loss"] == pytest.approx(2.5)
+    assert model.v.item() == pytest.approx(0.4)
+    # unclipped (max_grad_norm 10) the same step moves v by the whole gradient, to +1
+    model = _Tiny()
+    optimizer = torch.optim.SGD(model.parameters(), lr=1.0)
+    ppo_update(model, optimizer, batch, _worked_cfg(), 2, 4, torch.Generator().manual_seed(0))
+    assert model.v.item() == pytest.approx(1.0)
