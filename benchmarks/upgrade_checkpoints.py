@@ -2,9 +2,9 @@
 
     python benchmarks/upgrade_checkpoints.py configs/zoos/checkpoints/*.pt
 
-Each file is loaded (magic, payload sha256 and observation layout checked), then saved
-again with its own header, so the new file carries the header digest; the payload and
-its sha256 stay as they were. Prints JSON: per file, the payload sha256 before and after.
+Each file is loaded (magic, payload sha256, observation layout and weights checked), then
+its header is written again with its digest (atdrone.models.checkpoint.sign_header); the
+payload bytes and their sha256 stay as they were. Prints JSON, one entry per file.
 """
 
 from __future__ import annotations
@@ -14,20 +14,19 @@ import json
 import warnings
 from pathlib import Path
 
-from atdrone.models.checkpoint import HEADER_DIGEST, load_checkpoint, read_header, save_checkpoint
+from atdrone.models.checkpoint import HEADER_DIGEST, load_checkpoint, read_header, sign_header
 
 
 def upgrade(path: Path) -> dict[str, object]:
     """Add the header digest to one checkpoint; a file that has one is left alone."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        header = read_header(path)
-        if HEADER_DIGEST in header:
-            return {"file": str(path), "upgraded": False, "sha256": header["sha256"]}
-        model, header = load_checkpoint(path)
-    keep = {k: v for k, v in header.items() if k not in ("format", "architecture", "sha256")}
-    full = save_checkpoint(path, model, keep)
-    return {"file": str(path), "upgraded": True, "sha256_before": header["sha256"], "sha256": full["sha256"]}
+        if HEADER_DIGEST in read_header(path):
+            return {"file": str(path), "upgraded": False}
+        load_checkpoint(path)  # everything but the digest is checked before the header is signed
+    header = sign_header(path)
+    load_checkpoint(path)
+    return {"file": str(path), "upgraded": True, "sha256": header["sha256"]}
 
 
 def main() -> None:

@@ -18,14 +18,7 @@ from torch import nn
 from atdrone.envs import BatchedPursuit
 from atdrone.envs.core import OBS_LAYOUT_VERSION
 from atdrone.models import ARCHITECTURES, CheckpointError, DroneMemory, PolicyModel, build_model
-from atdrone.models.checkpoint import (
-    HEADER_DIGEST,
-    MAGIC,
-    header_digest,
-    load_checkpoint,
-    read_header,
-    save_checkpoint,
-)
+from atdrone.models.checkpoint import MAGIC, load_checkpoint, read_header, save_checkpoint, sign_header
 from atdrone.models.history import ObsHistory, StatelessMemory
 from atdrone.models.networks import ActorCritic, NetConfig
 from atdrone.policies.base import PolicyError
@@ -213,19 +206,10 @@ def test_format_1_legacy_file_still_loads(tmp_path):
     np.testing.assert_array_equal(_actions(loaded, obs), _actions(model, obs))
 
 
-def _rewrite_header(path: Path, **changes: object) -> None:
-    """Change header fields and sign the result again (a file written by a future atdrone, say)."""
-    data = path.read_bytes()
-    end = data.index(b"\n", len(MAGIC))
-    header = {**json.loads(data[len(MAGIC) : end]), **changes}
-    header[HEADER_DIGEST] = header_digest(header)
-    path.write_bytes(MAGIC + json.dumps(header).encode() + data[end:])
-
-
 def test_an_unknown_format_is_refused(tmp_path):
     path = tmp_path / "m.pt"
     save_checkpoint(path, _model(), _header())
-    _rewrite_header(path, format=7)
+    sign_header(path, format=7)
     with pytest.raises(CheckpointError, match="format 7"):
         load_checkpoint(path)
 
@@ -251,7 +235,7 @@ def test_a_directory_is_not_a_checkpoint(tmp_path):
 def test_a_crafted_header_declaring_a_huge_network_is_refused_before_allocating(tmp_path):
     path = tmp_path / "huge.pt"
     save_checkpoint(path, _model(), _header())
-    _rewrite_header(path, architecture={"class": "ActorCritic", "entity_dim": 10**6, "hidden": 10**6})
+    sign_header(path, architecture={"class": "ActorCritic", "entity_dim": 10**6, "hidden": 10**6})
     assert path.stat().st_size < 400_000
     with pytest.raises(CheckpointError, match="entity_dim must be an integer between 1 and 1024"):
         load_checkpoint(path)

@@ -14,8 +14,8 @@ File layout (one file, ``*.pt``):
 renamed. Loading checks the magic line, the header and its digest, the sha256 and the
 observation layout, and refuses a mismatched, edited or corrupted file with a
 :class:`CheckpointError`. A header without ``header_sha256`` (written before it existed)
-loads with a warning; ``python benchmarks/upgrade_checkpoints.py FILE...`` re-writes such
-files with it (the weights unchanged).
+loads with a warning; ``python benchmarks/upgrade_checkpoints.py FILE...`` gives such
+files their digest (:func:`sign_header`; the payload untouched).
 Format 2 loads without unpickling anything; format 1 goes through
 ``torch.load(weights_only=True)``, which unpickles tensors only.
 """
@@ -39,7 +39,18 @@ from atdrone.fileio import atomic_write_bytes
 from atdrone.models.architectures import CheckpointError, PolicyModel, build_model
 from atdrone.models.tensorfile import TensorFileError, decode, encode
 
-__all__ = ["FORMAT", "MAGIC", "REQUIRED", "CheckpointError", "load_checkpoint", "read_header", "save_checkpoint"]
+__all__ = [
+    "FORMAT",
+    "HEADER_DIGEST",
+    "MAGIC",
+    "REQUIRED",
+    "CheckpointError",
+    "header_digest",
+    "load_checkpoint",
+    "read_header",
+    "save_checkpoint",
+    "sign_header",
+]
 
 MAGIC = b"ATDRONE-CHECKPOINT 1\n"
 FORMAT = 2  # the payload format written; 1 (torch.save) is still read
@@ -93,6 +104,25 @@ def header_digest(header: dict[str, Any]) -> str:
     """sha256 of a header's canonical JSON (sorted keys, compact), without the digest field itself."""
     body = {k: v for k, v in header.items() if k != HEADER_DIGEST}
     return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def sign_header(path: str | Path, **changes: Any) -> dict[str, Any]:
+    """Re-write a checkpoint's header with ``changes`` and a fresh header_sha256, the payload untouched.
+
+    For tooling, not for hiding edits (the digest is a check against accidents and stale
+    tools, not a signature with a secret): giving a header written before header_sha256
+    existed its digest, or making test files of another atdrone version.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.find(b"\n", len(MAGIC))
+    if not data.startswith(MAGIC) or end < 0:
+        raise CheckpointError(f"{path}: not an atdrone checkpoint (bad magic line or header)")
+    header = {**json.loads(data[len(MAGIC) : end]), **changes}
+    header.pop(HEADER_DIGEST, None)
+    header[HEADER_DIGEST] = header_digest(header)
+    atomic_write_bytes(path, MAGIC + json.dumps(header, sort_keys=True).encode() + data[end:])
+    return header
 
 
 def read_header(path: str | Path) -> dict[str, Any]:
