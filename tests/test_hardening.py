@@ -118,15 +118,6 @@ def test_the_local_trainer_refuses_to_resume_a_different_experiment(tmp_path):
     assert run_training(longer, resume=True, progress=False, uri=uri).env_steps == 1024  # a longer budget may
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    from atdrone.service.driver import init_ray
-
-    init_ray(None, num_cpus=2)
-    yield
-    ray.shutdown()
-
-
 def _service(tmp_path: Path, name: str, **kw) -> dict:
     return {**TINY_SERVICE, "name": name, "out_dir": str(tmp_path), **kw}
 
@@ -329,24 +320,26 @@ def test_a_run_the_cluster_cannot_place_is_refused_at_once(local_ray, tmp_path):
 
 # ------------------------------------------------------------------ progress within a generation
 def test_the_coordinator_reports_what_a_generation_is_doing(local_ray, tmp_path):
+    """One PBT generation trains two learners, plays their fitness matches and evaluates them on the zoo."""
     from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.experiment import registry_name
 
-    cfg = load_experiment(_service(tmp_path, "progress_t", updates_per_generation=3))
+    doc = _service(tmp_path, "progress_t", algorithm="pbt", pbt={"population_size": 2}, updates_per_generation=3)
+    doc.pop("hola")
+    cfg = load_experiment(doc)
     registry = registry_actor(tmp_path / "p.db", name=registry_name(cfg.name))
-    coordinator = Coordinator.options(max_concurrency=2).remote(cfg, ALGORITHMS["hola"], str(tmp_path), None, registry)
+    coordinator = Coordinator.options(max_concurrency=2).remote(cfg, ALGORITHMS["pbt"], str(tmp_path), None, registry)
     seen: list[str] = []
-    for _ in range(2):  # generation 0 trains Pi_0; generation 1 plays G'_1, then trains
-        ref = coordinator.run_generation.remote()
-        while not ray.wait([ref], timeout=0.02)[0]:
-            line = ray.get(coordinator.progress.remote())
-            if line and (not seen or seen[-1] != line):
-                seen.append(line)
-        ray.get(ref)
+    ref = coordinator.run_generation.remote()
+    while not ray.wait([ref], timeout=0.02)[0]:
+        line = ray.get(coordinator.progress.remote())
+        if line and (not seen or seen[-1] != line):
+            seen.append(line)
+    ray.get(ref)
     ray.kill(coordinator)
     ray.kill(registry)
-    assert "train: learner 1, update 3/3" in seen or "train: learner 1, update 2/3" in seen, seen
-    assert any(line.startswith("evaluate: ") and "matches" in line for line in seen), seen
-    assert any(line.startswith("zoo: ") and "zoo1" in line for line in seen), seen
+    assert {"train: learner 2, update 2/3", "train: learner 2, update 3/3"} & set(seen), seen
+    assert "evaluate: 2 matches, 8 episodes (0 matches before)" in seen, seen
+    assert "zoo: 2 members on zoo1, 4 episodes each" in seen, seen

@@ -40,13 +40,6 @@ def _flat(weights: dict[str, torch.Tensor]) -> torch.Tensor:
     return torch.cat([v.reshape(-1).float() for v in weights.values()])
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False, namespace="atdrone", log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 def test_local_learner_and_learner_actor_give_bitwise_equal_parameters(local_ray):
     ppo = ppo_config(SMALL)
     fragments = _fragments(ppo)

@@ -712,7 +712,9 @@ def test_list_over_several_registries_skips_an_unreadable_one_with_a_warning(
 def ray_cluster():
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    from atdrone.service.driver import init_ray
+
+    init_ray(None, num_cpus=2)
     yield ray
     ray.shutdown()
 

@@ -40,13 +40,6 @@ TINY = {
 }
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False, namespace="atdrone", log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 def _cfg(tmp_path, name, **kw):
     return load_experiment({**TINY, "name": name, "out_dir": str(tmp_path), **kw})
 
@@ -390,7 +383,7 @@ def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path
 # ------------------------------------------------------------------ exact resume after SIGKILL
 RESUME = {
     "algorithm": "hola",
-    "generations": 3,
+    "generations": 2,
     "updates_per_generation": 4,
     "hola": {"pi0_seeds": 1, "pi0_levels": 3, "min_episodes": 4, "max_episodes": 8},
     "final_zoo": "zoo1",
@@ -434,9 +427,9 @@ def test_a_run_killed_mid_generation_and_resumed_ends_as_an_uninterrupted_run(lo
     proc = subprocess.Popen([sys.executable, "-c", script, json.dumps(doc)], start_new_session=True)
     db = tmp_path / "b" / "exact_t" / "registry.db"
     deadline = time.monotonic() + 240
-    try:  # kill it once generation 2 has played its matches and is training
+    try:  # kill it once generation 1 has played its matches and is training
         while time.monotonic() < deadline and proc.poll() is None:
-            if _matches_of_generation(db, 2):
+            if _matches_of_generation(db, 1):
                 break
             time.sleep(0.05)
         assert proc.poll() is None, "the run ended before it could be killed"
@@ -445,13 +438,13 @@ def test_a_run_killed_mid_generation_and_resumed_ends_as_an_uninterrupted_run(lo
         proc.wait()
     run_dir = tmp_path / "b" / "exact_t"
     saved = json.loads((run_dir / STATE_FILE).read_text())
-    assert saved["coordinator"]["generation"] == 2  # killed inside generation 2
+    assert saved["coordinator"]["generation"] == 1  # killed inside generation 1
     assert len(_rows(run_dir, "exact_t")["matches"]) > len(
-        [m for m in _rows(tmp_path / "a" / "exact_t", "exact_t")["matches"] if m["generation"] < 2]
+        [m for m in _rows(tmp_path / "a" / "exact_t", "exact_t")["matches"] if m["generation"] < 1]
     )  # it left rows of the unfinished generation behind
 
     resumed = run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)
-    assert [r.generation for r in resumed["reports"]] == [2]
+    assert [r.generation for r in resumed["reports"]] == [1]
     got, want = _rows(run_dir, "exact_t"), _rows(tmp_path / "a" / "exact_t", "exact_t")
     diff = [
         (t, i, k, r[k], want[t][i][k]) for t in got for i, r in enumerate(got[t]) for k in r if r[k] != want[t][i][k]
