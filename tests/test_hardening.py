@@ -13,6 +13,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import mlflow
 import pytest
 import ray
 
@@ -124,7 +125,13 @@ def _service(tmp_path: Path, name: str, **kw) -> dict:
 
 def test_the_service_refuses_to_resume_a_different_experiment(local_ray, tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    run_experiment(load_experiment(_service(tmp_path, "mix")), tracking_uri=uri, progress=False, stop_after=1)
+    first = run_experiment(load_experiment(_service(tmp_path, "mix")), tracking_uri=uri, progress=False, stop_after=1)
+    # every member new in generation 0 (Pi_0's two snapshots, not only N_0) has its zoo SUC for the curves
+    members = Registry(tmp_path / "mix" / "registry.db").members(run="mix")
+    assert len(members) == 2 and all("zoo1/SUC" in m for m in members["metrics"])
+    parent = mlflow.MlflowClient(tracking_uri=uri).get_run(first["mlflow_run_id"]).data.metrics
+    assert parent["gen/zoo1_SUC_best"] == max(m["zoo1/SUC"] for m in members["metrics"])
+    assert parent["gen/population_size"] == 2
     saved = (tmp_path / "mix" / "config.json").read_bytes()
     other = _service(tmp_path, "mix", algorithm="sp", task="4p2e3o", sp={})
     other.pop("hola")
@@ -146,7 +153,6 @@ def test_a_damaged_service_state_is_a_clear_error(local_ray, tmp_path):
 def test_a_run_killed_between_a_checkpoint_and_its_generation_leaves_no_orphan(local_ray, tmp_path):
     """Killed once generation 0's first member is written: a plain rerun is refused, a resume rebuilds
     generation 0 under the same ids, and the dead attempt's MLflow runs end KILLED."""
-    import mlflow
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     doc = _service(tmp_path, "orphan_t", generations=1)
@@ -342,4 +348,4 @@ def test_the_coordinator_reports_what_a_generation_is_doing(local_ray, tmp_path)
     ray.kill(registry)
     assert {"train: learner 2, update 2/3", "train: learner 2, update 3/3"} & set(seen), seen
     assert "evaluate: 2 matches, 8 episodes (0 matches before)" in seen, seen
-    assert "zoo: 2 members on zoo1, 4 episodes each" in seen, seen
+    assert "zoo: 2 member(s) on zoo1, 4 episodes each" in seen, seen

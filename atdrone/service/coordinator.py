@@ -89,6 +89,7 @@ class Coordinator:
     def _begin(self, generation: int) -> None:
         """Counters and the generator of a generation, all derived from (seed, generation)."""
         self._progress = ""
+        self.new_members: list[str] = []  # registered in this generation, in order
         self.rng = np.random.default_rng(derive_seed(self.cfg.seed, generation, RNG_STREAM))
         self.trained = 0
         self.registered = 0
@@ -124,9 +125,9 @@ class Coordinator:
         self._begin(self.generation)
         ray.get(self.registry.start_generation.remote(self.run, self.generation, {"algorithm": self.cfg.algorithm}))
         report = self.algorithm.generation(self)
-        if self.cfg.final_zoo and report.learners:  # the parent run's curves: the new members on the zoo
-            self._progress = f"zoo: {len(report.learners)} new members on {self.cfg.final_zoo}"
-            self.evaluate_population(self.cfg.final_zoo, self.cfg.eval_episodes, members=report.learners)
+        fresh = [m for m in self.new_members if m in report.population]
+        if self.cfg.final_zoo and fresh:  # the parent run's curves: the generation's new members on the zoo
+            self.evaluate_population(self.cfg.final_zoo, self.cfg.eval_episodes, members=fresh)
         report.budget = dict(self.budget)
         report.wall_s = time.perf_counter() - t0
         ray.get(
@@ -216,6 +217,7 @@ class Coordinator:
     def register(self, trained: Trained, parents: Sequence[str]) -> str:
         member = member_id(self.cfg.algorithm, self.generation, self.registered)
         self.registered += 1
+        self.new_members.append(member)
         last = trained.history[-1] if trained.history else {}
         path = self.checkpoint_path(member)
         header = {
@@ -292,7 +294,7 @@ class Coordinator:
             return {}
         specs = list(zoo.spec.members)
         population = self.population() if members is None else list(members)
-        self._progress = f"zoo: {len(population)} members on {zoo_name}, {episodes} episodes each"
+        self._progress = f"zoo: {len(population)} member(s) on {zoo_name}, {episodes} episodes each"
         calls = [
             self.workers[i % len(self.workers)].evaluate_zoo.remote(self.member_spec(m), specs, episodes, 4242 + i)
             for i, m in enumerate(population)

@@ -304,7 +304,7 @@ def _log_generation(
 def _generation_curves(report: GenerationReport, registry: Any, cfg: ExperimentConfig) -> dict[str, float]:
     """The parent run's per-generation curves: population size, rho entropy, best and mean zoo SUC.
 
-    The coordinator evaluates each generation's new learners on the final zoo
+    The coordinator evaluates each generation's new members on the final zoo
     (``eval_episodes`` episodes each, registry metrics ``<zoo>/SUC``); best and mean are
     over the members of the population now.
     """
