@@ -192,6 +192,7 @@ def test_a_run_killed_between_a_checkpoint_and_its_generation_leaves_no_orphan(l
     assert status.pop(dead.info.run_id) == "KILLED"
     assert set(status.values()) == {"FINISHED"} and parent.info.run_id in status  # the parent run was resumed
     assert summary["population"]["member"].tolist() == ["hola-g0-0", "hola-g0-1"]
+    assert [m.get("eta") for m in members["metrics"]] == [None, None]  # one generation: no G'_t played yet
     again = run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)  # make demo, twice
     assert again["complete"] and again["best"] == summary["best"] and again["model"] == summary["model"]
     assert len(client.search_runs([experiment])) == len(status) + 1  # nothing run, nothing logged

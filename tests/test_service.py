@@ -129,6 +129,9 @@ def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
     assert {"member", "eta", "rho", "drawn", "zoo1_SUC", "zoo1_COL", "zoo1_AST", "zoo1_REW"} <= set(table.columns)
     rows = table.set_index("member")
     assert [rows.loc[m, "rho"] for m in (p0, p1, p2)] == pytest.approx([graph2["rho"][m] for m in (p0, p1, p2)])
+    registered = Registry(tmp_path / "hola_t" / "registry.db").members(run="hola_t").set_index("id")["metrics"]
+    for m in (p0, p1, p2, g1):  # `atdrone registry list` shows the same eta (and rho) as the table
+        assert registered[m]["eta"] == pytest.approx(rows.loc[m, "eta"])
     assert rows.loc[[g1, g2], "rho"].isna().all()  # N_t and the new learner are never partners
     assert [rows.loc[m, "drawn"] for m in (p0, p1, p2, g1, g2)] == [
         *(graph2["drawn_members"].get(m, 0) for m in (p0, p1, p2)),

@@ -346,6 +346,8 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
             row[f"{cfg.final_zoo}_{k}"] = v
         rows.append(row)
     table = pd.DataFrame(rows)
+    graph = {m: {k: float(v[m]) for k, v in (("eta", eta), ("rho", rho)) if m in v} for m in state["population"]}
+    ray.get([registry.update_member.remote(m, metrics=g) for m, g in graph.items() if g])  # for registry list
     atomic_write_bytes(run_dir / "population.csv", table.to_csv(index=False).encode())
     tracker.log_artifact(run_dir / "population.csv")
     suc = f"{cfg.final_zoo}_SUC"
