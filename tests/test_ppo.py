@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
+from typing import Any, cast
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -178,34 +181,73 @@ def _tiny(tmp_path, **kw):
     return load_train_config(doc)
 
 
-def test_resume_continues_from_saved_step_with_equal_parameters(tmp_path):
-    cfg = _tiny(tmp_path)
-    first = Trainer(cfg)
-    for _ in range(3):
-        first.update_once()
-    first.save()
-    second = Trainer(cfg)
-    assert second.resume()
-    assert second.env_steps == first.env_steps == 3 * 8 * 32 and second.updates == 3
-    for (name, a), (_, b) in zip(first.model.state_dict().items(), second.model.state_dict().items(), strict=True):
-        assert torch.equal(a, b), name
-    moments = zip(
-        first.learner.optimizer.state_dict()["state"].values(),
-        second.learner.optimizer.state_dict()["state"].values(),
-        strict=True,
-    )
-    for a, b in moments:
-        assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"])
-    assert second.history == first.history
-    # and both continue identically from there: the same fragment, update, weights and statistics
-    stats = [t.update_once() for t in (first, second)]
-    assert second.env_steps == first.env_steps == 4 * 8 * 32
-    timing = ("perf/",)
-    assert {k: v for k, v in stats[0].items() if not k.startswith(timing)} == {
-        k: v for k, v in stats[1].items() if not k.startswith(timing)
-    }
-    for (name, a), (_, b) in zip(first.model.state_dict().items(), second.model.state_dict().items(), strict=True):
-        assert torch.equal(a, b), name
+TIMING = ("perf/", "wall_s")  # wall-clock measurements: the only history fields a resume may change
+
+
+def _untimed(rows: list[dict]) -> str:
+    """History rows without their timing fields, as JSON (NaN, e.g. eval/AST without captures, equals NaN)."""
+    return json.dumps([{k: v for k, v in row.items() if not k.startswith(TIMING)} for row in rows], sort_keys=True)
+
+
+def _assert_same_learner(got: Trainer, want: Trainer) -> None:
+    """Every parameter, every optimiser slot and setting, the update generator and the counters, equal."""
+    assert (got.updates, got.env_steps) == (want.updates, want.env_steps)
+    weights, reference = got.model.state_dict(), want.model.state_dict()
+    assert list(weights) == list(reference)
+    for name in reference:
+        assert torch.equal(weights[name], reference[name]), name
+    optim, optim_ref = got.learner.optimizer.state_dict(), want.learner.optimizer.state_dict()
+    groups = [json.loads(json.dumps(g)) for g in (optim["param_groups"], optim_ref["param_groups"])]
+    assert groups[0] == groups[1]  # lr (the schedule's position), betas, eps: as JSON (betas come back a list)
+    assert list(optim["state"]) == list(optim_ref["state"]) and len(optim_ref["state"]) == len(reference)
+    for idx, slots in optim_ref["state"].items():
+        assert set(optim["state"][idx]) == set(slots) == {"step", "exp_avg", "exp_avg_sq"}
+        for slot, value in slots.items():
+            assert torch.equal(torch.as_tensor(optim["state"][idx][slot]), torch.as_tensor(value)), (idx, slot)
+    assert torch.equal(got.learner.generator.get_state(), want.learner.generator.get_state())
+
+
+def test_a_run_killed_after_a_save_and_resumed_ends_as_the_uninterrupted_run(tmp_path, monkeypatch):
+    """Four updates with an evaluation and a save every two: run A straight through; run B killed right after
+    its first save (update 2) and resumed in a new Trainer. Both end with the same weights, optimiser state,
+    generator and history rows (evaluations included; only wall-clock fields differ), and the same history.csv."""
+    kw = {"total_env_steps": 4 * 8 * 32, "eval_every": 2, "checkpoint_every": 2, "eval_episodes": 2}
+    a = Trainer(_tiny(tmp_path / "a", **kw))
+    a.train(progress=False)
+    assert a.updates == 4 and len(a.history) == 4 and [("eval/SUC" in r) for r in a.history] == [0, 1, 0, 1]
+
+    class Killed(Exception):
+        pass
+
+    b = Trainer(_tiny(tmp_path / "b", **kw))
+    save = b.save
+
+    def save_then_die(metrics_now=None):
+        save(metrics_now)
+        raise Killed
+
+    monkeypatch.setattr(b, "save", save_then_die)
+    with pytest.raises(Killed):
+        b.train(progress=False)
+    assert b.updates == 2
+    resumed = Trainer(_tiny(tmp_path / "b", **kw))
+    assert resumed.resume()
+    _assert_same_learner(resumed, b)  # the state at the save, restored
+    assert json.dumps(resumed.history, sort_keys=True) == json.dumps(b.history, sort_keys=True)
+    assert len(resumed.history) == 2
+    resumed.train(progress=False)
+    _assert_same_learner(resumed, a)
+    assert _untimed(resumed.history) == _untimed(a.history)
+    assert all(sum(not k.startswith(TIMING) for k in r) > 10 for r in a.history)  # train/ and eval/ fields
+    curves = [pd.read_csv(d / "tiny" / "history.csv") for d in (tmp_path / "b", tmp_path / "a")]
+    timing = [c for c in curves[1].columns if c.startswith(TIMING)]
+    assert sorted(curves[0].columns) == sorted(curves[1].columns) and timing
+    # the same rows and values (the resumed file's columns come in another order: its first rows went through JSON)
+    pd.testing.assert_frame_equal(curves[0].drop(columns=timing), curves[1].drop(columns=timing), check_like=True)
+    want, _ = load_checkpoint(tmp_path / "a" / "tiny" / "last.pt")
+    got, _ = load_checkpoint(tmp_path / "b" / "tiny" / "last.pt")
+    for name, value in want.state_dict().items():
+        assert torch.equal(got.state_dict()[name], value), name
 
 
 def test_train_config_errors_name_the_field(tmp_path):
@@ -375,7 +417,8 @@ def _worked_batch(ratios: list[float], adv: list[float], ret: list[float], model
 
 
 def _worked_cfg(**kw: float) -> PPOConfig:
-    base = {"epochs": 1, "minibatch_size": 2, "clip": 0.2, "vf_coef": 0.5, "ent_coef": 0.0, "max_grad_norm": 10.0}
+    base: dict[str, Any] = {"epochs": 1, "minibatch_size": 2, "clip": 0.2, "vf_coef": 0.5, "ent_coef": 0.0}
+    base["max_grad_norm"] = 10.0
     return replace(PPOConfig(), normalize_advantages=False, **{**base, **kw})
 
 
@@ -413,3 +456,61 @@ def test_ppo_update_value_loss_and_gradient_clipping_by_hand():
     optimizer = torch.optim.SGD(model.parameters(), lr=1.0)
     ppo_update(model, optimizer, batch, _worked_cfg(), 2, 4, torch.Generator().manual_seed(0))
     assert model.v.item() == pytest.approx(1.0)
+
+
+def _one_step(ratios: list[float], adv: list[float], ret: list[float], **cfg: float) -> tuple[_Tiny, dict]:
+    """One SGD step (lr 1) of ppo_update on a fresh _Tiny: the parameters then hold minus the clipped gradient."""
+    model = _Tiny()
+    optimizer = torch.optim.SGD(model.parameters(), lr=1.0)
+    batch = _worked_batch(ratios, adv=adv, ret=ret, model=model)
+    stats = ppo_update(cast(Any, model), optimizer, batch, _worked_cfg(**cfg), 2, 4, torch.Generator().manual_seed(0))
+    return model, stats
+
+
+def test_ppo_update_keeps_the_gradient_of_a_ratio_outside_the_range_on_the_pessimistic_side():
+    """min(r A, clip(r) A) clips only where clipping lowers the objective: ratio 0.5 with A = +1 and ratio 1.5
+    with A = -1 are outside [0.8, 1.2] yet take the unclipped branch, L = -mean(0.5, -1.5) = 0.5, and at
+    u = mu = 0, d(log p)/d(log std) = -1, so dL/d(log std) = mean(A r) = (0.5 - 1.5) / 2 = -0.5: log std -> +0.5.
+    (Clipping these, as clip(r) A alone or a max would, leaves log std at 0.)"""
+    model, stats = _one_step([0.5, 1.5], adv=[1.0, -1.0], ret=[0.0, 0.0])
+    assert stats["policy_loss"] == pytest.approx(0.5) and stats["clipfrac"] == 1.0
+    assert model.log_std.item() == pytest.approx(0.5) and model.mu.item() == 0.0
+    # one clipped sample (1.5, A = +1: the clipped 1.2 is the min) beside an unclipped one (1.1, A = +1): only the
+    # unclipped one has a gradient, averaged over both: L = -mean(1.2, 1.1) = -1.15, dL/d(log std) = 1.1 / 2
+    model, stats = _one_step([1.5, 1.1], adv=[1.0, 1.0], ret=[0.0, 0.0])
+    assert stats["policy_loss"] == pytest.approx(-1.15) and stats["clipfrac"] == 0.5
+    assert model.log_std.item() == pytest.approx(-0.55)
+
+
+def test_ppo_update_clips_the_actor_and_critic_gradients_each_to_max_grad_norm():
+    """Actor gradient 1.1 (on log std: ratio 1.1, A = +1) and critic gradient -1 (value 0, returns 1 and 3,
+    vf_coef 0.5), each clipped to 0.4 on its own: both parameters move by exactly 0.4. (One global clip would
+    scale both by 0.4 / hypot(1.1, 1), moving them by 0.30 and 0.27.)"""
+    model, stats = _one_step([1.1, 1.1], adv=[1.0, 1.0], ret=[1.0, 3.0], max_grad_norm=0.4)
+    assert stats["value_loss"] == pytest.approx(2.5)
+    assert model.log_std.item() == pytest.approx(-0.4) and model.v.item() == pytest.approx(0.4)
+    # under the bound nothing is scaled: the same step with max_grad_norm 10 moves them by the whole gradients
+    model, _ = _one_step([1.1, 1.1], adv=[1.0, 1.0], ret=[1.0, 3.0])
+    assert model.log_std.item() == pytest.approx(-1.1) and model.v.item() == pytest.approx(1.0)
+
+
+def test_ppo_update_steps_the_real_network_with_each_group_gradient_norm_at_most_max_grad_norm(tmp_path):
+    """On a real ActorCritic and a collected fragment: at every optimiser step the actor's and the critic's
+    gradient norms are each <= max_grad_norm (here equal to it: both were larger and got scaled down)."""
+    trainer = Trainer(_tiny(tmp_path))
+    batch = trainer.worker.collect(8).batch(0.99, 0.95)
+    model = trainer.model
+    cfg = replace(trainer.ppo, max_grad_norm=1e-3, minibatch_size=64, epochs=2)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
+    step, norms = optimizer.step, []
+
+    def recording_step(*args, **kwargs):
+        norms.append([float(torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in g]))) for g in groups])
+        return step(*args, **kwargs)
+
+    groups = model.parameter_groups()
+    optimizer.step = recording_step  # type: ignore[method-assign]
+    ppo_update(model, optimizer, batch, cfg, 2, 4, torch.Generator().manual_seed(0))
+    n = len(batch["obs"])
+    assert len(norms) == cfg.epochs * (n // 64) > 2
+    assert np.array(norms) == pytest.approx(np.full((len(norms), 2), 1e-3), rel=1e-3)
