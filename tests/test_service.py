@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import mlflow
 import numpy as np
@@ -28,7 +29,7 @@ from atdrone.service.driver import STATE_FILE, run_experiment
 from atdrone.service.experiment import load_experiment
 from atdrone.teams.evaluation import metrics, run_episodes
 
-TINY = {
+TINY: dict[str, Any] = {
     "task": "4p2e1o",
     "updates_per_generation": 1,
     "num_workers": 2,
@@ -209,15 +210,24 @@ def test_hola_trains_on_partner_profiles_drawn_from_rho(local_ray, tmp_path):
 
 
 def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp_path):
-    """A worker killed inside a collect call (update 3's) is restarted and the call redone: every update of
-    the generation gets both workers' fragments."""
+    """A worker killed inside a collect call is restarted and the call redone: every update of the
+    generation gets both workers' fragments.
+
+    The kill is aimed at a collect in flight: a pid() call sent to the worker waits behind the running
+    collect (an actor runs one call at a time), so the worker is killed only once such a probe has gone
+    unanswered; the probe, retried on the restarted worker, then answers with the new pid, which shows the
+    old process never got to it: it was busy until it died. The coordinator had not finished the update
+    whose fragments the worker was collecting (its progress still names the one before), so that call was
+    a collect."""
     from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.experiment import registry_name
 
-    ppo = {**TINY["ppo"], "rollout_steps": 256}  # a collect of ~1 s: the kill lands inside one
-    cfg = _cfg(tmp_path, "kill_t", algorithm="sp", generations=1, updates_per_generation=6, ppo=ppo)
+    updates = 4
+    ppo = {**TINY["ppo"], "rollout_steps": 256, "minibatch_size": 512}  # a collect of ~1 s, a short update
+    kw = {"generations": 1, "updates_per_generation": updates, "ppo": ppo, "final_zoo": ""}
+    cfg = _cfg(tmp_path, "kill_t", algorithm="sp", **kw)
     registry = registry_actor(tmp_path / "kill.db", name=registry_name(cfg.name))
     coordinator = Coordinator.options(max_concurrency=2).remote(
         cfg, ALGORITHMS["sp"], str(tmp_path / "kill_t"), None, registry
@@ -225,21 +235,54 @@ def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp
     pids = ray.get(coordinator.worker_pids.remote())
     workers = ray.get(coordinator.workers_handles.remote())
     pending = coordinator.run_generation.remote()
-    deadline = time.monotonic() + 120
-    while ray.get(coordinator.progress.remote()) != "train: learner 1, update 2/6":  # update 3's collects next
-        assert time.monotonic() < deadline and not ray.wait([pending], timeout=0)[0], "missed update 2"
+    training = [f"train: learner 1, update {k}/{updates}" for k in range(1, updates - 1)]  # more collects to come
+    deadline = time.monotonic() + 180
+    while True:
+        assert time.monotonic() < deadline and not ray.wait([pending], timeout=0)[0], "no collect in flight seen"
+        if ray.get(coordinator.progress.remote()) in training:  # after update k: update k + 1's collects
+            probe = workers[0].pid.remote()
+            if not ray.wait([probe], timeout=0.3)[0]:  # worker 0 is inside a call
+                break
         time.sleep(0.01)
-    time.sleep(0.05)  # update 3's collect calls are out (they are sent right after update 2)
     ray.kill(workers[0], no_restart=False)
+    during = ray.get(coordinator.progress.remote())
+    assert during in training, during  # the update the worker was collecting for had not finished
     report = ray.get(pending, timeout=240)
-    history = report.training[0].history
-    assert len(history) == 6  # the learner's update count is complete
-    per_update = cfg.ppo["num_envs"] * ppo["rollout_steps"] * 4  # both workers' fragments, all 4 pursuers
-    assert [h["train/samples"] for h in history] == [per_update] * 6
-    seconds = [h["train/samples"] / h["perf/pursuer_steps_per_s"] for h in history]
-    assert seconds[2] > 1.5 * max(seconds[3:]), seconds  # update 3 waited for the restart and the redone collect
     new_pids = ray.get(coordinator.worker_pids.remote())
-    assert new_pids[0] != pids[0] and new_pids[1] == pids[1]
+    assert new_pids[0] != pids[0] and new_pids[1] == pids[1]  # worker 0 restarted, worker 1 untouched
+    assert ray.get(probe, timeout=60) == new_pids[0]  # the old process was busy from the probe to the kill
+    ray.kill(coordinator)
+    (trained,) = report.training
+    # the learner's update count is complete, each update on both workers' fragments: every worker's
+    # num_envs / workers environments x rollout_steps steps x 4 learner drones (self-play)
+    assert len(trained.history) == updates
+    fragment = cfg.ppo["num_envs"] // cfg.num_workers * ppo["rollout_steps"] * 4
+    assert [h["train/samples"] for h in trained.history] == [cfg.num_workers * fragment] * updates
+    assert trained.samples == updates * cfg.num_workers * fragment
+    assert trained.env_steps == updates * cfg.ppo["num_envs"] * ppo["rollout_steps"] == report.budget["env_steps"]
+
+
+def test_the_coordinator_skips_a_zoo_evaluation_whose_checkpoint_is_missing(local_ray, tmp_path):
+    """A zoo whose checkpoint file is absent (a zoo document in tmp_path): evaluate_population returns no
+    results and sends nothing to the workers, where the same call with a complete zoo plays (and here,
+    with a member that has no checkpoint, fails on the worker)."""
+    from atdrone.registry import registry_actor
+    from atdrone.service.coordinator import Coordinator
+    from atdrone.service.experiment import registry_name
+
+    ghosts = tmp_path / "ghosts.json"
+    members = [{"name": "greedy", "kind": "greedy"}, {"name": "ghost", "kind": "checkpoint", "checkpoint": "no.pt"}]
+    ghosts.write_text(json.dumps({"name": "ghosts", "members": members}))
+    assert load_zoo(ghosts).missing == ["ghost"]
+    cfg = _cfg(tmp_path, "ghost_t", algorithm="sp", num_workers=1, final_zoo="")
+    registry = registry_actor(tmp_path / "ghost.db", name=registry_name(cfg.name))
+    coordinator = Coordinator.remote(cfg, ALGORITHMS["sp"], str(tmp_path / "ghost_t"), None, registry)
+    try:
+        assert ray.get(coordinator.evaluate_population.remote(str(ghosts), 4, members=["sp-g0-0"])) == {}
+        with pytest.raises(ray.exceptions.RayTaskError, match="no checkpoint file"):
+            ray.get(coordinator.evaluate_population.remote("zoo1", 4, members=["sp-g0-0"]))
+    finally:
+        ray.kill(coordinator)
 
 
 def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path):
@@ -288,9 +331,10 @@ def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     first, second = summary["reports"]
     pbt = first.documents["pbt.json"]
-    # generation 0 spreads the hyperparameters; the worst member then continues from the best one's weights
-    lrs = sorted(pbt["hparams"][m]["lr"] for m in first.learners)
-    assert lrs[0] < lrs[1]
+    # generation 0 spreads the learning rates (3e-4 x 1.25^(i - 1/2), as its one update used them); the worst
+    # member then continues from the best one's weights
+    used = {t.member: t.history[0]["train/lr"] for r in (first, second) for t in r.training}  # schedule at 1
+    assert [used[m] for m in first.learners] == pytest.approx([3e-4 / 1.25**0.5, 3e-4 * 1.25**0.5])
     ((loser, winner),) = pbt["exploited"].items()
     assert pbt["fitness"][loser] < pbt["fitness"][winner] or loser == first.learners[0]  # ties: order kept
     reg = Registry(tmp_path / "pbt_t" / "registry.db")
@@ -307,18 +351,29 @@ def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_
         return float(sum((weights[a][k] - weights[b][k]).norm() ** 2 for k in weights[a]) ** 0.5)
 
     assert distance(child, winner) < 0.2 * distance(child, loser)  # one small update away from the winner
-    # ... with the winner's hyperparameters perturbed: each multiplied or divided by perturb
-    hp, winner_hp = second.documents["pbt.json"]["hparams"][child], pbt["hparams"][winner]
+    # ... with the winner's hyperparameters perturbed: each multiplied or divided by perturb (pbt.json files
+    # them under the loser's id: what its successor takes), and the child's update ran at that learning rate
+    hp, winner_hp = pbt["hparams"][loser], pbt["hparams"][winner]
+    assert set(hp) == set(winner_hp) == {"lr", "ent_coef"} and winner_hp["lr"] == pytest.approx(used[winner])
     for name, value in winner_hp.items():
         assert hp[name] / value == pytest.approx(1.25) or hp[name] / value == pytest.approx(1 / 1.25), name
+    assert used[child] == pytest.approx(hp["lr"]) and used[heir] == pytest.approx(winner_hp["lr"])
 
-    br = _cfg(tmp_path, "br_t", algorithm="br", br={"zoo": "zoo1"}, generations=1, final_zoo="zoo1")
+    # a best response to a zoo of two rule drones (a zoo document of its own); the final evaluation on zoo1
+    pair = tmp_path / "pair.json"
+    pair.write_text(json.dumps({"name": "pair", "members": [{"name": n, "kind": n} for n in ("greedy", "vicsek")]}))
+    br = _cfg(tmp_path, "br_t", algorithm="br", br={"zoo": str(pair)}, generations=1, final_zoo="zoo1")
     summary = run_experiment(br, tracking_uri=uri, progress=False)
     (member,) = summary["reports"][0].learners
-    # the best response trained with zoo partners, as the rollout recorded them
+    # it trained against exactly the configured partners: uniform over the zoo's two members, both of which
+    # the rollout drew into the 2 partner slots of its episodes, and nothing else
     (trained,) = summary["reports"][0].training
-    assert all(p.startswith("zoo1:") for profile in trained.drawn for p in profile.split("|"))
-    assert read_header(tmp_path / "br_t" / "members" / f"{member}.pt")["algorithm"] == "br"
+    assert trained.parent is None and trained.partners == {"kind": "Uniform", "members": ["pair:greedy", "pair:vicsek"]}
+    assert sum(trained.drawn.values()) >= cfg.ppo["num_envs"]  # a profile per episode started
+    slots = [p for profile, n in trained.drawn.items() for p in profile.split("|") * n]
+    assert len(slots) == 2 * sum(trained.drawn.values()) and set(slots) == {"pair:greedy", "pair:vicsek"}
+    header = read_header(tmp_path / "br_t" / "members" / f"{member}.pt")
+    assert header["algorithm"] == "br" and header["partners"] == trained.partners and header["parents"] == []
     # the reported zoo1 numbers are the member's own episodes with zoo1 partners (final evaluation seed 4242)
     policy = load_policy(tmp_path / "br_t" / "members" / f"{member}.pt")
     records = run_episodes(policy, load_task("4p2e1o"), load_zoo("zoo1").policies(), br.final_episodes, seed=4242)
