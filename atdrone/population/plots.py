@@ -40,31 +40,40 @@ def save_figure(fig: Any, path: Path) -> Path:
 def crossplay_figure(table: pd.DataFrame, title: str = "cross-play SUC", metric: str = "SUC") -> Any:
     """A member x partner heatmap of a cross-play matrix (rows: the member, columns: its partner; NaN blank).
 
-    Axis labels, a colour bar labelled with the metric, cell values, and a title wrapped
-    to the figure's width; tick labels shrink as members are added (readable to ~30).
+    Axis labels, a colour bar labelled with the metric, cell values while legible, and a
+    title wrapped to the figure's width. Cells are 0.5 in a side, smaller past 18 members
+    so the heatmap stays within 9 in; tick labels keep 9 pt up to 30 members (6 pt at 50).
     """
     plt = _pyplot()
-    n_cols, n_rows = len(table.columns), len(table.index)
-    width, height = 2.8 + 0.5 * max(n_cols, 4), 2.2 + 0.42 * max(n_rows, 4)
+    n_rows, n_cols = table.shape
+    cell = min(0.5, 9.0 / max(n_rows, n_cols, 1))  # inches a side: the heatmap stays within 9 in
+    tick = float(np.clip(0.42 * cell * 72, 6.0, 9.0))  # pt: a tick label fits its row or column
+    names = [str(x) for x in (*table.index, *table.columns)]
+    label = 0.55 * tick / 72 * max(map(len, names), default=1)  # inches of the longest tick label
+    width, height = max(n_cols, 4) * cell + label + 2.2, max(n_rows, 4) * cell + 0.85 * label + 1.4
     fig, ax = plt.subplots(figsize=(width, height), dpi=100, layout="constrained")
     values = table.to_numpy(dtype=float)
     percent = metric in ("SUC", "COL")
     im = ax.imshow(values, cmap="viridis", vmin=0 if percent else None, vmax=100 if percent else None, aspect="auto")
-    tick = max(5.0, 9.0 - 0.15 * max(n_cols, n_rows))
     ax.set_xticks(range(n_cols), [str(c) for c in table.columns], rotation=55, ha="right", fontsize=tick)
     ax.set_yticks(range(n_rows), [str(i) for i in table.index], fontsize=tick)
-    ax.set_xlabel("partner", fontsize=9)
-    ax.set_ylabel("member", fontsize=9)
-    if n_cols * n_rows <= 400:  # numbers in the cells while they stay legible
-        finite = values[np.isfinite(values)]
-        middle = float(np.nanmean(finite)) if finite.size else 0.0
-        for (i, j), v in np.ndenumerate(values):
-            if np.isfinite(v):
-                ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=tick - 1, color="w" if v < middle else "k")
+    ax.set_xlabel("partner", fontsize=10)
+    ax.set_ylabel("member", fontsize=10)
+    _annotate(ax, im, values, fontsize=min(tick - 1, 0.33 * cell * 72))
     bar = fig.colorbar(im, ax=ax, shrink=0.85)
-    bar.set_label(f"{metric} (%)" if percent else metric, fontsize=9)
-    ax.set_title(_wrap(title, width), fontsize=9)
+    bar.set_label(f"{metric} (%)" if percent else metric, fontsize=10)
+    ax.set_title(_wrap(title, width, points=10), fontsize=10)
     return fig
+
+
+def _annotate(ax: Any, image: Any, values: np.ndarray, fontsize: float) -> None:
+    """Each finite cell's value, white on the colour map's dark part, black on its light part; none below 5.5 pt."""
+    if fontsize < 5.5:
+        return
+    for (i, j), v in np.ndenumerate(values):
+        if np.isfinite(v):
+            colour = "w" if image.norm(v) < 0.6 else "k"  # viridis turns light at about 60 %
+            ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=fontsize, color=colour)
 
 
 def crossplay_heatmap(table: pd.DataFrame, path: Path, title: str = "cross-play SUC", metric: str = "SUC") -> Path:
