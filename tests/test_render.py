@@ -1,19 +1,34 @@
-"""Rendering: frames, GIF/PNG files, the ``atdrone render`` command and lazy imports."""
+"""Rendering: frames, GIF/PNG files, the ``atdrone render`` command, lazy imports, the best member's
+captioned GIF and the cross-play heatmap of a large population."""
 
 from __future__ import annotations
 
+import itertools
+import math
 import subprocess
 import sys
 
 import numpy as np
+import pandas as pd
 import pytest
 from PIL import Image
 
 from atdrone.cli import main
+from atdrone.config import load_task
 from atdrone.envs.core import BatchedPursuit
-from atdrone.envs.render import render_frame, save_gif, save_png
-from atdrone.policies.rules import chase_nearest
-from atdrone.teams.replay import record_episode
+from atdrone.envs.render import FrameRenderer, render_frame, save_gif, save_png, two_lines
+from atdrone.policies.rules import GreedyPolicy, chase_nearest
+from atdrone.policies.zoo import load_zoo
+from atdrone.population.plots import crossplay_figure
+from atdrone.teams.match import Match
+from atdrone.teams.replay import (
+    frame_steps,
+    play_episode,
+    record_episode,
+    representative_episode,
+    showcase,
+    showcase_gif,
+)
 
 
 def test_render_frame_is_an_rgb_uint8_image_of_plausible_size():
@@ -123,3 +138,103 @@ def test_cli_demo_renders_every_task(tmp_path, capsys):
 def test_importing_the_envs_does_not_import_matplotlib():
     code = "import sys, atdrone.envs, atdrone.cli; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ------------------------------------------------------------------ captions and the best member's GIF
+LONG_CAPTION = "hola_quick-g12-3 + sp_high, sp_low: collision in 1000 steps (1/2 caught), seed 7"
+
+
+def test_a_long_caption_wraps_onto_two_readable_lines_above_the_status_line():
+    renderer = FrameRenderer(BatchedPursuit("4p2e1o", num_envs=1, seed=0))
+    renderer.core.reset()
+    renderer.draw(title=LONG_CAPTION)
+    figure, title, status = renderer.figure.bbox, renderer.title, renderer.status
+    assert title.get_text() == two_lines(LONG_CAPTION) and title.get_text().replace("\n", " ") == LONG_CAPTION
+    assert title.get_fontsize() >= 8  # not shrunk to a smudge
+    box, line = title.get_window_extent(), status.get_window_extent()
+    assert figure.x0 <= box.x0 and box.x1 <= figure.x1 and box.y1 <= figure.y1, (box, figure)
+    assert line.y1 <= box.y0 and renderer.ax.get_window_extent().y1 <= line.y0  # title, status, arena
+
+
+def test_frame_steps_show_the_whole_episode():
+    assert frame_steps(8, 4) == [0, 4, 8]
+    assert frame_steps(9, 4) == [0, 4, 8, 9]
+    assert frame_steps(0, 4) == [0]
+    assert all(len(frame_steps(n, k)) == math.ceil(n / k) + 1 for n in range(1, 30) for k in range(1, 9))
+    with pytest.raises(ValueError, match="frame_every"):
+        frame_steps(5, 0)
+
+
+def test_the_representative_episode_is_the_first_capture_else_the_longest():
+    zoo = load_zoo("zoo2")
+    straight = lambda obs, core: np.zeros((1, 2))  # never catches anyone: the longest episode is kept
+    played = [play_episode("4p2e1o", s, straight, partners=zoo).summary for s in range(4)]
+    assert not any(p["outcome"] == "captured" for p in played)
+    longest = max(played, key=lambda p: p["steps"])
+    assert representative_episode("4p2e1o", straight, zoo, seed=0, tries=4).summary == longest
+    greedy = [play_episode("4p2e1o", s, GreedyPolicy(), partners=zoo).summary for s in range(2)]
+    assert [g["outcome"] for g in greedy] == ["collision", "captured"] and greedy[0]["steps"] > greedy[1]["steps"]
+    assert representative_episode("4p2e1o", GreedyPolicy(), zoo, seed=0, tries=2).summary == greedy[1]
+
+
+def test_showcase_gif_plays_the_member_with_zoo_partners_and_captions_the_whole_episode(tmp_path):
+    policy = GreedyPolicy()
+    policy.name = "member-x"
+    shown = showcase_gif("4p2e1o", policy, "zoo2", seed=0, out=tmp_path / "best.gif", max_tries=2, frame_every=7)
+    assert set(shown) == {"member", "partners", "seed", "outcome", "steps", "captured", "num_e", "caption"} | {
+        "frames",
+        "path",
+    }
+    steps, horizon = shown["steps"], load_task("4p2e1o").task.task_horizon
+    assert shown["outcome"] in ("captured", "collision") or (shown["outcome"] == "timeout" and steps == horizon)
+    assert shown["frames"] == math.ceil(steps / 7) + 1  # step 0, every 7th and the last: the whole episode
+    with Image.open(shown["path"]) as im:
+        assert im.n_frames == shown["frames"] and im.info["duration"] == 100
+    # the partners are the zoo's, and the very ones that played (drawn at the episode's reset)
+    match = Match(BatchedPursuit("4p2e1o", num_envs=1, seed=shown["seed"]), load_zoo("zoo2"), seed=shown["seed"])
+    match.reset(seed=shown["seed"])
+    assert shown["partners"] == match.team()["partners"][0].tolist()
+    assert set(shown["partners"]) <= {"sp_high", "sp_low"} and len(shown["partners"]) == 2
+    assert shown["member"] == "member-x"
+    assert shown["caption"] == (
+        f"member-x + {', '.join(shown['partners'])}: {shown['outcome']} in {steps} steps "
+        f"({shown['captured']}/{shown['num_e']} caught), seed {shown['seed']}"
+    )
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_the_showcase_draws_the_episode_its_caption_describes():
+    # a policy that never plays the same episode twice: what is drawn must be what was picked
+    rng = np.random.default_rng(0)
+
+    def jitter(obs: np.ndarray, core: BatchedPursuit) -> np.ndarray:
+        return rng.uniform(-1, 1, size=(1, 2))
+
+    frames, summary = showcase("4p2e1o", jitter, load_zoo("zoo1"), seed=0, tries=3, frame_every=3)
+    assert summary["caption"].startswith(f"jitter + greedy, greedy: {summary['outcome']} in {summary['steps']} steps")
+    assert len(frames) == math.ceil(summary["steps"] / 3) + 1
+
+
+def test_showcase_without_a_zoo_plays_the_member_alone():
+    frames, summary = showcase("4p2e1o", GreedyPolicy(), None, seed=0, tries=1, frame_every=10**6)
+    assert "team" not in summary and summary["caption"].startswith("greedy alone: ")
+    assert len(frames) == 2
+
+
+# ------------------------------------------------------------------ the cross-play heatmap, large
+def test_the_crossplay_heatmap_of_30_members_keeps_9pt_labels_on_a_screen_sized_figure():
+    ids = [f"hola_quick-g{i // 2}-{i % 2}" for i in range(30)]
+    values = np.random.default_rng(0).uniform(0, 100, (30, 30))
+    fig = crossplay_figure(
+        pd.DataFrame(values, index=ids, columns=ids), title="hola_quick cross-play SUC, generation 14"
+    )
+    assert fig.get_figwidth() <= 14 and fig.get_figheight() <= 14  # about 1400 px: no shrinking to fit a screen
+    ax = fig.axes[0]
+    labels = ax.get_xticklabels() + ax.get_yticklabels()
+    assert len(labels) == 60 and all(t.get_fontsize() >= 9 for t in labels)
+    fig.canvas.draw()
+    rows = [t.get_window_extent() for t in ax.get_yticklabels()]
+    assert all(a.y1 <= b.y0 + 0.5 or b.y1 <= a.y0 + 0.5 for a, b in itertools.pairwise(rows))  # no overlap
+    assert all(fig.bbox.x0 <= b.x0 and b.x1 <= fig.bbox.x1 for b in (t.get_window_extent() for t in labels))
+    numbers = [t for t in ax.texts if t.get_text().isdigit()]
+    assert len(numbers) == 900 and min(t.get_fontsize() for t in numbers) >= 6  # every cell's value, legible

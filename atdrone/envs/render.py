@@ -5,8 +5,8 @@ pyplot), so importing :mod:`atdrone.envs` stays light. A frame shows one environ
 of a :class:`BatchedPursuit`: the arena and its walls, box and disc obstacles,
 pursuers (blue; zoo partners green when a team plays) and evaders (red) with heading
 arrows, each pursuer's capture radius (solid ring) and perception radius (faint ring),
-captured evaders greyed and crossed, the step counter and, optionally, the trails the
-drones left. Recording whole episodes (policies, teams) is
+captured evaders greyed and crossed, a title (a long one on two lines, never under 7 pt),
+the step counter and, optionally, the trails the drones left. Recording whole episodes (policies, teams) is
 :func:`atdrone.teams.replay.record_episode`.
 """
 
@@ -57,7 +57,7 @@ class FrameRenderer:
         pad = 0.15
         w, h = geo.width + 2 * pad, geo.height + 2 * pad
         scale = 6.4 / h  # inches per metre: about 512 px tall at FIGURE_DPI
-        header = 0.5  # inches of text above the arena
+        header = 0.66  # inches of text above the arena: a title of up to two lines, then the status line
         total = h * scale + header
         self.figure = Figure(figsize=(w * scale, total), dpi=FIGURE_DPI)
         self.canvas = FigureCanvasAgg(self.figure)
@@ -81,19 +81,30 @@ class FrameRenderer:
         ax.hlines(np.arange(0.5, geo.height, 0.5), 0, geo.width, color=GRID_COLOR, linewidth=0.6, zorder=0.5)
         self.floor = floor  # dynamic artists are clipped to the arena
         self.ax = ax
-        self.title = self.figure.text(0.03, 1.0 - 0.15 / total, "", fontsize=10, weight="bold", va="center")
-        self.status = self.figure.text(0.03, 1.0 - 0.36 / total, "", fontsize=8, va="center", family="monospace")
+        self.title = self.figure.text(
+            0.03, 1.0 - 0.05 / total, "", fontsize=10, weight="bold", va="top", linespacing=1.1
+        )
+        self.status = self.figure.text(0.03, 1.0 - 0.3 / total, "", fontsize=8, va="top", family="monospace")
+        self._title_source: str | None = None
         self._dynamic: list[Any] = []
 
-    def _fit_width(self, text: Any, largest: float = 10.0, smallest: float = 6.0) -> None:
-        """Shrink ``text`` (from ``largest`` pt down to ``smallest``) until it fits inside the frame's width."""
+    def _set_title(self, title: str) -> None:
+        """Show ``title`` on one line at 8.5-10 pt if it fits the frame's width, else on two lines at 7-10 pt;
+        the status line goes just below it."""
+        if title == self._title_source:
+            return
+        self._title_source = title
         renderer = self.canvas.get_renderer()
-        width = self.figure.bbox.width * 0.96
-        size = largest
-        text.set_fontsize(size)
-        while size > smallest and text.get_window_extent(renderer=renderer).x1 > width:
-            size -= 0.5
-            text.set_fontsize(size)
+        width = self.figure.bbox.width * 0.97
+        layouts = [(title, size) for size in (10.0, 9.5, 9.0, 8.5)]
+        layouts += [(two_lines(title), size) for size in (10.0, 9.5, 9.0, 8.5, 8.0, 7.5, 7.0)]
+        for text, size in layouts:
+            self.title.set_text(text)
+            self.title.set_fontsize(size)
+            if self.title.get_window_extent(renderer=renderer).x1 <= width:
+                break
+        below = self.title.get_window_extent(renderer=renderer).y0 - 0.06 * self.figure.dpi
+        self.status.set_y(below / self.figure.bbox.height)
 
     def draw(
         self, state: PursuitState | None = None, title: str | None = None, trails: np.ndarray | None = None
@@ -186,8 +197,7 @@ class FrameRenderer:
         self._dynamic = dyn
 
         t = int(s.t[k])
-        self.title.set_text(title if title is not None else cfg.name)
-        self._fit_width(self.title)
+        self._set_title(title if title is not None else cfg.name)
         self.status.set_text(
             f"t = {t} / {cfg.task.task_horizon}    captured {int(captured.sum())}/{core.num_e}"
             f"    return {float(s.ep_return[k]):+.1f}"
@@ -197,6 +207,15 @@ class FrameRenderer:
 
     def close(self) -> None:
         self.figure.clear()
+
+
+def two_lines(text: str) -> str:
+    """``text`` broken at the space that best balances two lines (unchanged without a space)."""
+    words = text.split(" ")
+    if len(words) < 2:
+        return text
+    cut = min(range(1, len(words)), key=lambda i: abs(len(" ".join(words[:i])) - len(" ".join(words[i:]))))
+    return " ".join(words[:cut]) + "\n" + " ".join(words[cut:])
 
 
 def render_frame(

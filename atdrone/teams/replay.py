@@ -1,27 +1,115 @@
 """Recorded episodes: a policy (and optionally zoo partners) plays one episode, drawn frame by frame.
 
 The drawing is :mod:`atdrone.envs.render`; this module adds who plays (a policy, a
-:class:`~atdrone.teams.match.Match` with partners), so it sits beside the teams.
+:class:`~atdrone.teams.match.Match` with partners), so it sits beside the teams. An
+episode is played first (:func:`play_episode` keeps every state) and drawn after
+(:func:`draw_episode`), so what is shown is exactly what was played.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from atdrone.config import TaskConfig
-from atdrone.envs.core import DONE_REASONS, RUNNING, BatchedPursuit
-from atdrone.envs.render import FrameRenderer
+from atdrone.envs.core import DONE_REASONS, RUNNING, BatchedPursuit, PursuitState
+from atdrone.envs.render import FrameRenderer, save_gif
 from atdrone.envs.single import Stepper
 from atdrone.policies.base import DroneBatch
 from atdrone.policies.base import Policy as DronePolicy
 from atdrone.policies.rules import chase_nearest
-from atdrone.policies.zoo import Zoo
+from atdrone.policies.zoo import Zoo, load_zoo
 from atdrone.teams.match import Match
 
 Steer = Callable[[np.ndarray, BatchedPursuit], np.ndarray]  # obs (B, n, obs_dim), core -> actions (B, n)
+Partners = Zoo | Sequence[DronePolicy]
+
+
+@dataclass
+class Episode:
+    """One played episode: its core, the states after the reset and after every step (the last one before
+    any auto-reset), its summary (see :func:`record_episode`) and the pursuer slots of the partners."""
+
+    core: BatchedPursuit
+    states: list[PursuitState]
+    summary: dict[str, Any]
+    partner_slots: list[int] = field(default_factory=list)
+
+
+def play_episode(
+    task: TaskConfig | str,
+    seed: int | None = 0,
+    policy: Steer | DronePolicy | None = None,
+    max_steps: int | None = None,
+    partners: Partners | None = None,
+) -> Episode:
+    """Play one episode of ``BatchedPursuit(task, num_envs=1, seed)`` to its end (or ``max_steps``), keeping each state.
+
+    Who steers what is described in :func:`record_episode`.
+    """
+    core = BatchedPursuit(task, num_envs=1, seed=seed)
+    match = Match(core, partners, seed=seed) if partners is not None else None
+    stepper: Stepper = match if match is not None else core
+    act = _actor(policy, core, match)
+    obs = stepper.reset(seed=seed)
+    team = {k: v[0].tolist() for k, v in match.team().items() if k != "partner_members"} if match else {}
+    states, reason = [core.state.copy()], RUNNING
+    limit = core.cfg.task.task_horizon if max_steps is None else max_steps
+    while len(states) <= limit and reason == RUNNING:
+        obs, _, done, info = stepper.step(np.asarray(act(obs), dtype=np.float64).reshape(1, -1))
+        state = core.state
+        if done[0]:
+            assert core.final_state is not None
+            state, reason = core.final_state, int(info["done_reason"][0])
+        states.append(state.copy())
+    final = states[-1]
+    summary: dict[str, Any] = {
+        "task": core.cfg.name,
+        "seed": seed,
+        "steps": int(final.t[0]),
+        "outcome": DONE_REASONS[reason],
+        "return": float(final.ep_return[0]),
+        "captured": int(final.captured[0].sum()),
+        "num_e": core.num_e,
+    }
+    if team:
+        summary["team"] = team  # drawn at the reset: an auto-reset at the end draws the next episode's
+    return Episode(core, states, summary, team.get("partner_slots", []))
+
+
+def frame_steps(steps: int, frame_every: int) -> list[int]:
+    """The steps drawn of an episode of ``steps`` steps: 0, every ``frame_every``-th, and the last.
+
+    That is ``ceil(steps / frame_every) + 1`` frames, so the whole episode is shown.
+    """
+    if frame_every < 1:
+        raise ValueError(f"frame_every must be >= 1, got {frame_every}")
+    return sorted({*range(0, steps, frame_every), steps})
+
+
+def draw_episode(
+    episode: Episode, frame_every: int = 1, trails: bool = True, title: str | None = None
+) -> list[np.ndarray]:
+    """The frames of ``episode`` at :func:`frame_steps`; ``title`` on each (default: task, seed, partners)."""
+    steps = frame_steps(len(episode.states) - 1, frame_every)
+    if title is None:
+        title = f"{episode.summary['task']}  seed {episode.summary['seed']}"
+        if "team" in episode.summary:
+            title += f"  partners: {', '.join(episode.summary['team']['partners'])}"
+    track = np.stack([s.pos[0] for s in episode.states])
+    renderer = FrameRenderer(episode.core, 0, partner_slots=episode.partner_slots)
+    try:
+        return [
+            renderer.draw(episode.states[i], title=title, trails=track[: i + 1] if trails and i else None)
+            for i in steps
+        ]
+    finally:
+        renderer.close()
 
 
 def record_episode(
@@ -32,7 +120,7 @@ def record_episode(
     frame_every: int = 1,
     trails: bool = True,
     title: str | None = None,
-    partners: Zoo | Sequence[DronePolicy] | None = None,
+    partners: Partners | None = None,
 ) -> tuple[list[np.ndarray], dict[str, Any]]:
     """Run one episode of ``BatchedPursuit(task, num_envs=1, seed)`` and draw it.
 
@@ -48,55 +136,9 @@ def record_episode(
     Returns the frames and a summary: task, seed, steps, outcome, return, captured,
     num_e, and with partners the team (learner_slots, partner_slots, partners).
     """
-    if frame_every < 1:
-        raise ValueError(f"frame_every must be >= 1, got {frame_every}")
-    core = BatchedPursuit(task, num_envs=1, seed=seed)
-    match: Match | None = None
-    stepper: Stepper = core
-    if partners is not None:
-        stepper = match = Match(core, partners, seed=seed)
-    act = _actor(policy, core, match)
-    obs = stepper.reset(seed=seed)
-    name = title if title is not None else f"{core.cfg.name}  seed {seed}"
-    team: dict[str, list[Any]] = {}
-    if match is not None:
-        team = {k: v[0].tolist() for k, v in match.team().items() if k != "partner_members"}
-        if title is None:
-            name += f"  partners: {', '.join(team['partners'])}"
-    renderer = FrameRenderer(core, 0, partner_slots=team.get("partner_slots", ()))
-    history = [core.state.pos[0].copy()]
-    frames = [renderer.draw(title=name)]
-    reason, step, final = RUNNING, 0, core.state
-    limit = core.cfg.task.task_horizon if max_steps is None else max_steps
-    try:
-        while step < limit:
-            obs, _, done, info = stepper.step(np.asarray(act(obs), dtype=np.float64).reshape(1, -1))
-            step += 1
-            if done[0]:
-                assert core.final_state is not None
-                final, reason = core.final_state, int(info["done_reason"][0])
-            else:
-                final = core.state
-            history.append(final.pos[0].copy())
-            if done[0] or step % frame_every == 0 or step == limit:
-                trail = np.asarray(history) if trails else None
-                frames.append(renderer.draw(final, title=name, trails=trail))
-            if done[0]:
-                break
-    finally:
-        renderer.close()
-    summary: dict[str, Any] = {
-        "task": core.cfg.name,
-        "seed": seed,
-        "steps": int(final.t[0]),
-        "outcome": DONE_REASONS[reason],
-        "return": float(final.ep_return[0]),
-        "captured": int(final.captured[0].sum()),
-        "num_e": core.num_e,
-    }
-    if team:
-        summary["team"] = team
-    return frames, summary
+    frame_steps(0, frame_every)  # a bad frame_every fails before the episode is played
+    episode = play_episode(task, seed, policy, max_steps, partners)
+    return draw_episode(episode, frame_every, trails, title), episode.summary
 
 
 def _actor(
@@ -116,36 +158,82 @@ def _actor(
     return lambda obs: steer(obs, core)
 
 
+# ------------------------------------------------------------------ showcase
+def representative_episode(
+    task: TaskConfig | str, policy: Steer | DronePolicy, partners: Partners | None, seed: int = 0, tries: int = 8
+) -> Episode:
+    """The episode that shows ``policy`` best: seeds ``seed, seed + 1, ...`` (up to ``tries``) are each played
+    whole, and the first that captures every evader is kept, else the longest (the earliest of equals)."""
+    best: Episode | None = None
+    for s in range(seed, seed + max(1, tries)):
+        episode = play_episode(task, s, policy, partners=partners)
+        if episode.summary["outcome"] == "captured":
+            return episode
+        if best is None or episode.summary["steps"] > best.summary["steps"]:
+            best = episode
+    assert best is not None
+    return best
+
+
+def member_name(policy: Steer | DronePolicy) -> str:
+    """The name a policy is shown by: its ``name``, else its function name."""
+    return str(getattr(policy, "name", None) or getattr(policy, "__name__", "policy"))
+
+
+def caption(member: str, summary: dict[str, Any]) -> str:
+    """``"<member> + <partners>: <outcome> in <steps> steps (<caught>/<evaders> caught), seed <seed>"``
+    (``"<member> alone: ..."`` without partners)."""
+    partners = summary.get("team", {}).get("partners", [])
+    who = f"{member} + {', '.join(partners)}" if partners else f"{member} alone"
+    return (
+        f"{who}: {summary['outcome']} in {summary['steps']} steps "
+        f"({summary['captured']}/{summary['num_e']} caught), seed {summary['seed']}"
+    )
+
+
 def showcase(
     task: TaskConfig | str,
-    policy: DronePolicy,
-    partners: Zoo | None,
+    policy: Steer | DronePolicy,
+    partners: Partners | str | None,
     seed: int = 0,
     tries: int = 8,
     frame_every: int = 5,
 ) -> tuple[list[np.ndarray], dict[str, Any]]:
-    """A whole, representative episode of ``policy`` with ``partners``, drawn with a caption.
+    """A whole, representative episode of ``policy`` with ``partners`` (a zoo, its name, or None: alone), drawn.
 
-    Plays seeds ``seed, seed + 1, ...`` (up to ``tries``, each to its end) and keeps the
-    first that captures every evader, else the longest; then draws that episode whole
-    (every ``frame_every``-th step, the first and the last). The caption (each frame's
+    The episode is :func:`representative_episode`'s; every ``frame_every``-th step, the
+    first and the last are drawn (:func:`frame_steps`). The :func:`caption` (each frame's
     title, and ``summary["caption"]``) names the member, its partners and the outcome.
     """
-    best: dict[str, Any] | None = None
-    for s in range(seed, seed + max(1, tries)):
-        _, summary = record_episode(task, s, policy, frame_every=10**9, trails=False, partners=partners)
-        if best is None or summary["steps"] > best["steps"] or summary["outcome"] == "captured":
-            best = summary
-        if summary["outcome"] == "captured":
-            break
-    assert best is not None
-    mates = ", ".join(best.get("team", {}).get("partners", [])) or "itself"
-    caption = (
-        f"{getattr(policy, 'name', 'policy')} + {mates}: {best['outcome']} in {best['steps']} steps "
-        f"({best['captured']}/{best['num_e']} caught), seed {best['seed']}"
-    )
-    frames, summary = record_episode(
-        task, best["seed"], policy, frame_every=frame_every, title=caption, partners=partners
-    )
-    summary["caption"] = caption
-    return frames, summary
+    frame_steps(0, frame_every)
+    zoo = load_zoo(partners) if isinstance(partners, str) else partners
+    episode = representative_episode(task, policy, zoo, seed, tries)
+    summary = {**episode.summary, "caption": caption(member_name(policy), episode.summary)}
+    return draw_episode(episode, frame_every, title=summary["caption"]), summary
+
+
+def showcase_gif(
+    task: TaskConfig | str,
+    policy: Steer | DronePolicy,
+    zoo: Zoo | str | None,
+    seed: int,
+    out: str | os.PathLike[str],
+    max_tries: int = 8,
+    frame_every: int = 4,
+    fps: float = 10,
+) -> dict[str, Any]:
+    """Write :func:`showcase`'s GIF of ``policy`` with partners from ``zoo`` to ``out`` (atomically).
+
+    Returns member, partners (the zoo members drawn; [] alone), seed, outcome, steps,
+    captured, num_e, caption, frames (the GIF's frame count) and path.
+    """
+    frames, summary = showcase(task, policy, zoo, seed, max_tries, frame_every)
+    path = save_gif(frames, out, fps=fps)
+    keep = ("seed", "outcome", "steps", "captured", "num_e", "caption")
+    return {
+        "member": member_name(policy),
+        "partners": summary.get("team", {}).get("partners", []),
+        **{k: summary[k] for k in keep},
+        "frames": len(frames),
+        "path": Path(path),
+    }
