@@ -29,6 +29,7 @@ TASK_NAMES = ("4p2e1o", "4p2e3o", "4p2e5o", "4p3e5o")
 MAX_DRONES = 64
 MAX_OBSTACLES = 256
 MAX_HORIZON = 100_000
+MAX_SEED = 2**32 - 1  # numpy's and the evaluation's seed range
 
 
 class ConfigError(UserError, ValueError):
@@ -438,9 +439,18 @@ def read_json(path: str | Path) -> Any:
         raise ConfigError(exc.path, f"{exc.args[0].split(': ', 1)[1]} (in {path})") from None
 
 
+def read_object(name_or_path: str | Path, kind: str, names: tuple[str, ...] = ()) -> dict[str, Any]:
+    """:func:`read_document` of a document that must be one JSON object (a config), else ConfigError."""
+    document = read_document(name_or_path, kind, names)
+    if not isinstance(document, dict):
+        got = _describe(document)
+        raise ConfigError("", f"{name_or_path} must hold one JSON object (a config), got {got}")
+    return document
+
+
 def load_config(schema: Any, path_or_doc: str | Path | Mapping[str, Any], kind: str, **overrides: Any) -> Any:
     """A document of configs/<kind>/ (a path or a mapping), with non-None overrides, validated against ``schema``."""
-    doc = dict(path_or_doc) if isinstance(path_or_doc, Mapping) else read_document(path_or_doc, kind)
+    doc = dict(path_or_doc) if isinstance(path_or_doc, Mapping) else read_object(path_or_doc, kind)
     doc.update({k: v for k, v in overrides.items() if v is not None})
     return parse_document(schema, doc)
 
@@ -465,6 +475,12 @@ def require_at_most(cfg: Any, limits: Mapping[str, float]) -> None:
     for name, limit in limits.items():
         if getattr(cfg, name) > limit:
             raise ConfigError(name, f"must be <= {limit:,}, got {getattr(cfg, name):,}")
+
+
+def check_seed(value: int, path: str = "seed") -> None:
+    """ConfigError unless ``value`` is a seed numpy and torch take: 0 <= seed <= MAX_SEED (2**32 - 1)."""
+    if not 0 <= value <= MAX_SEED:
+        raise ConfigError(path, f"must be between 0 and 2**32 - 1, got {value}")
 
 
 RUN_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,99}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import pytest
@@ -11,7 +12,8 @@ import torch
 from atdrone.cli import main
 from atdrone.config import CONFIG_DIR, ConfigError, load_task
 from atdrone.learn.trainer import load_train_config
-from atdrone.models.checkpoint import save_checkpoint
+from atdrone.models import architectures
+from atdrone.models.checkpoint import MAGIC, CheckpointError, load_checkpoint, save_checkpoint, sign_header
 from atdrone.models.networks import ActorCritic, NetConfig
 from atdrone.policies.zoo import ZooError, load_zoo
 from atdrone.service.experiment import load_experiment
@@ -58,7 +60,10 @@ def test_train_refuses_a_directory_and_a_missing_file(tmp_path, capsys):
 @pytest.mark.parametrize(
     "change, expect",
     [
-        ({"seed": -1}, "seed: must be >= 0, got -1"),
+        ({"seed": -1}, "seed: must be between 0 and 2**32 - 1, got -1"),
+        ({"seed": 10**30}, "seed: must be between 0 and 2**32 - 1"),
+        ({"total_env_steps": 10**15}, "total_env_steps: must be <= 1,000,000,000,000"),
+        ({"init_checkpoint": "nowhere/gone.pt"}, "init_checkpoint: nowhere/gone.pt: no such file"),
         ({"device": "banana"}, "device: must be auto, cpu, cuda or cuda:N, got 'banana'"),
         ({"eval_episodes": 10**9}, "eval_episodes: must be <= 100,000"),
         ({"ppo": {"hidden": 10**6}}, "ppo.hidden: must be between 1 and 4,096"),
@@ -173,8 +178,10 @@ def test_an_experiment_is_refused_when_loaded_not_after_training(tmp_path):
         load_experiment({**EXPERIMENT, "final_zoo": _missing_zoo(tmp_path)})
     with pytest.raises(ConfigError, match=r"^name: '\.\./x' is not a run name"):
         load_experiment({**EXPERIMENT, "name": "../x"})
-    with pytest.raises(ConfigError, match=r"^seed: must be >= 0"):
+    with pytest.raises(ConfigError, match=r"^seed: must be between 0 and 2\*\*32 - 1"):
         load_experiment({**EXPERIMENT, "seed": -1})
+    with pytest.raises(ConfigError, match=r"^seed: must be between 0 and 2\*\*32 - 1"):
+        load_experiment({**EXPERIMENT, "seed": 2**40})
     with pytest.raises(ConfigError, match=r"^eval_episodes: must be <= 100,000"):
         load_experiment({**EXPERIMENT, "eval_episodes": 10**9})
     with pytest.raises(ConfigError, match=r"^zoo: moved"):  # a zoo in a self-play experiment
@@ -200,3 +207,159 @@ def test_evaluate_with_a_zoo_missing_a_checkpoint_skips_it_and_says_so(tmp_path,
     assert "error: no zoo has all its members; nothing to evaluate" in err
     with pytest.raises(ZooError, match=r"zoo 'broken' is incomplete: 'gone' needs nowhere/gone\.pt"):
         load_zoo(missing).policies()
+
+
+def test_a_best_response_experiment_zoo_with_a_missing_checkpoint_is_refused_when_loaded(tmp_path):
+    br = {**EXPERIMENT, "algorithm": "br", "br": {"zoo": _missing_zoo(tmp_path)}}
+    with pytest.raises(ConfigError, match=r"^br\.zoo: zoo 'broken' is incomplete: 'gone'"):
+        load_experiment(br)
+
+
+def test_an_init_checkpoint_is_checked_when_the_train_config_is_loaded(tmp_path, capsys):
+    policy = _policy(tmp_path)
+    with pytest.raises(ConfigError, match=r"^init_checkpoint: .*trained on task '4p2e1o', expected '4p3e5o'"):
+        load_train_config({**TRAIN, "task": "4p3e5o", "init_checkpoint": policy})
+    doc = {**TRAIN, "out_dir": str(tmp_path / "runs"), "init_checkpoint": str(tmp_path)}
+    _one_line_error(capsys, ["train", _file(tmp_path, doc)], "init_checkpoint: ")
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("content", [b"[1, 2]", b"7"])
+def test_configs_that_are_not_objects_are_refused_by_every_loader(tmp_path, capsys, content):
+    path = _file(tmp_path, content)
+    with pytest.raises(ConfigError, match="must hold one JSON object"):
+        load_experiment(path)
+    with pytest.raises(ConfigError, match="must hold one JSON object"):
+        load_train_config(path)
+    _one_line_error(capsys, ["deploy", path], "must hold one JSON object")
+
+
+# ------------------------------------------------------------------ checkpoint files
+def _header_line(path: Path) -> tuple[bytes, bytes, bytes]:
+    """(magic, header line, newline and payload) of a checkpoint file."""
+    data = path.read_bytes()
+    end = data.index(b"\n", len(MAGIC))
+    return data[: len(MAGIC)], data[len(MAGIC) : end], data[end:]
+
+
+def _rewrite_header(path: Path, header: bytes) -> None:
+    magic, _, rest = _header_line(path)
+    path.write_bytes(magic + header + rest)
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda h: {**h, "task": "4p2e3o"},
+        lambda h: {**h, "metrics": {"eval/SUC": 99.0}},
+        lambda h: {**h, "num_e": 3},
+    ],
+    ids=["task", "metrics", "num_e"],
+)
+def test_an_edited_checkpoint_header_is_refused(tmp_path, capsys, edit):
+    path = Path(_policy(tmp_path))
+    sign_header(path, metrics={"eval/SUC": 10.0})
+    _rewrite_header(path, json.dumps(edit(json.loads(_header_line(path)[1]))).encode())
+    with pytest.raises(CheckpointError, match=r"header was changed after it was written \(header_sha256 mismatch\)"):
+        load_checkpoint(path)
+    argv = ["evaluate", "--policy", str(path), "--zoo", "zoo1", "--out-dir", str(tmp_path / "o")]
+    _one_line_error(capsys, argv, "header_sha256 mismatch")
+
+
+def test_a_legacy_header_without_its_digest_loads_with_a_warning(tmp_path):
+    path = Path(_policy(tmp_path))
+    header = json.loads(_header_line(path)[1])
+    del header["header_sha256"]
+    _rewrite_header(path, json.dumps(header).encode())
+    with pytest.warns(UserWarning, match="not covered by a digest"):
+        _, loaded = load_checkpoint(path)
+    assert loaded["task"] == "4p2e1o"
+
+
+def test_the_committed_zoo_checkpoints_carry_the_header_digest():
+    for path in sorted((CONFIG_DIR / "zoos" / "checkpoints").glob("*.pt")):
+        header = json.loads(_header_line(path)[1])
+        assert "header_sha256" in header, path
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no legacy warning
+            load_checkpoint(path)
+
+
+@pytest.mark.parametrize(
+    "header, expect",
+    [
+        (b"[" * 100_000 + b"]" * 100_000, "corrupted header: nested too deeply"),
+        (b'{"task": "a", "task": "b"}', "corrupted header: key 'task' appears twice"),
+        (b"[1]", "corrupted header: not a JSON object"),
+        (b"\xff{}", "corrupted header"),
+    ],
+)
+def test_a_checkpoint_header_that_is_not_one_json_object_is_refused(tmp_path, capsys, header, expect):
+    path = Path(_policy(tmp_path))
+    _rewrite_header(path, header)
+    with pytest.raises(CheckpointError, match=expect):
+        load_checkpoint(path)
+    argv = ["evaluate", "--policy", str(path), "--zoo", "zoo1", "--out-dir", str(tmp_path / "o")]
+    _one_line_error(capsys, argv, expect)
+
+
+@pytest.mark.parametrize(
+    "change, expect",
+    [
+        ({"num_p": "four"}, "header field num_p must be a pursuer count in 1..64, got 'four'"),
+        ({"num_e": 10**9}, "header field num_e must be an evader count in 1..64, got 1000000000"),
+        ({"task": ["4p2e1o"]}, "header field task must be a task name"),
+        ({"architecture": "ActorCritic"}, "header field architecture must be a JSON object"),
+    ],
+)
+def test_checkpoint_header_fields_are_typed_and_bounded(tmp_path, capsys, change, expect):
+    path = Path(_policy(tmp_path))
+    sign_header(path, **change)  # as a stale or foreign tool would write it, digest and all
+    argv = ["evaluate", "--policy", str(path), "--zoo", "zoo1", "--out-dir", str(tmp_path / "o")]
+    _one_line_error(capsys, argv, expect)
+
+
+def _crafted(tmp_path: Path, architecture: dict) -> Path:
+    """A tiny checkpoint whose (re-signed) header declares ``architecture``, with a few bytes of weights."""
+    path = tmp_path / "crafted.pt"
+    save_checkpoint(path, ActorCritic(NetConfig(entity_dim=1, hidden=1)), {"task": "4p2e1o", "num_p": 4, "num_e": 2})
+    sign_header(path, architecture={"class": "ActorCritic", **architecture})
+    return path
+
+
+@pytest.mark.parametrize(
+    "architecture, expect",
+    [
+        ({"hidden": 10**6}, "hidden must be an integer between 1 and 4096"),
+        ({"entity_dim": 10**6}, "entity_dim must be an integer between 1 and 1024"),
+        ({"history": 10**6}, "history must be an integer between 0 and 64"),
+        ({"hidden": 4096, "entity_dim": 1024, "history": 64, "centralised_critic": True}, "weights do not match"),
+    ],
+)
+def test_a_crafted_checkpoint_declaring_a_huge_network_is_refused_before_allocating(
+    tmp_path, monkeypatch, architecture, expect
+):
+    path = _crafted(tmp_path, architecture)
+    assert path.stat().st_size < 20_000
+
+    def no_real_network(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a network was built before the header and weights were checked")
+
+    monkeypatch.setattr("atdrone.models.checkpoint.build_model", no_real_network)
+    with pytest.raises(CheckpointError, match=expect):
+        load_checkpoint(path)
+
+
+def test_a_network_over_the_parameter_cap_is_refused_on_the_meta_device(tmp_path, monkeypatch):
+    monkeypatch.setattr(architectures, "MAX_PARAMETERS", 1_000)
+    with pytest.raises(CheckpointError, match=r"has 85,123 parameters, over 1,000"):
+        architectures.build_model(ActorCritic.header(NetConfig()))
+    with pytest.raises(CheckpointError, match=r"parameters, over 1,000"):
+        load_checkpoint(_crafted(tmp_path, {"hidden": 64}))
+
+
+def test_an_oversized_file_is_not_read_as_a_checkpoint(tmp_path, monkeypatch):
+    path = Path(_policy(tmp_path))
+    monkeypatch.setattr("atdrone.models.checkpoint.MAX_FILE_BYTES", 1_000)
+    with pytest.raises(CheckpointError, match=r"more than any checkpoint \(1,000\): not one"):
+        load_checkpoint(path)

@@ -27,6 +27,7 @@ from atdrone.config import (
     OPTIONAL,
     ConfigError,
     check_run_name,
+    check_seed,
     check_task_field,
     load_config,
     load_task,
@@ -80,6 +81,9 @@ class TrainConfig:
     state (mode mappo always has one); the actor still sees only its own observation.
     stop_at_suc: stop once a periodic evaluation reaches this SUC % (0: off), to train a
     drone of a given skill level (the Zoo 2 drones).
+    Bounds (checked by :func:`load_train_config`): name a run name (letters, digits, '.',
+    '_', '-'; see :func:`atdrone.config.check_run_name`), seed in [0, 2**32 - 1],
+    sizes within :data:`TRAIN_LIMITS`, device auto, cpu or a CUDA device torch sees.
     """
 
     name: str
@@ -105,10 +109,21 @@ class TrainConfig:
     start_std: float = 0.0
 
 
+# upper bounds of a train config's sizes (the paper's runs: 2e6-1e7 env steps, 200 evaluation episodes)
+TRAIN_LIMITS = {"total_env_steps": 10**12, "eval_episodes": 100_000, "torch_threads": 256, "update_threads": 256}
+
+
 def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> TrainConfig:
-    """A validated TrainConfig from a JSON file or mapping (plus overrides)."""
+    """A validated TrainConfig from a JSON file or mapping (plus overrides).
+
+    Everything a run would trip over later is refused here, before anything is written:
+    the run name, seed, bounds (:data:`TRAIN_LIMITS`) and device first, then the task,
+    the PPO section, the zoo (best_response only, every checkpoint loaded) and the
+    initial checkpoint (loaded, trained on the same task).
+    """
     cfg: TrainConfig = load_config(TrainConfig, path_or_doc, "train", **overrides)
-    check_task_field(cfg.task)
+    _check_settings(cfg)
+    task = check_task_field(cfg.task)
     ppo_config(cfg.ppo, cfg.preset)
     if cfg.mode == "best_response" and not cfg.zoo:
         raise ConfigError("zoo", "best_response training needs a zoo")
@@ -117,23 +132,44 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     if cfg.zoo:
         try:
             load_zoo(cfg.zoo).check()
-        except PolicyError as exc:
+        except (ConfigError, PolicyError) as exc:
             raise ConfigError("zoo", str(exc)) from None
+    if cfg.init_checkpoint:
+        _check_init_checkpoint(cfg.init_checkpoint, task.name)
+    return cfg
+
+
+def _check_settings(cfg: TrainConfig) -> None:
+    """The settings that need no file: run name, seed, bounds, device."""
     check_run_name(cfg.name)
-    if cfg.seed < 0:
-        raise ConfigError("seed", f"must be >= 0, got {cfg.seed}")
-    require_at_most(cfg, {"eval_episodes": 100_000, "torch_threads": 256, "update_threads": 256})
-    check_device(cfg.device)
+    check_seed(cfg.seed)
     require_at_least(
         cfg, ("total_env_steps", "eval_every", "eval_episodes", "checkpoint_every", "torch_threads", "update_threads")
     )
+    require_at_most(cfg, TRAIN_LIMITS)
+    check_device(cfg.device)
     if cfg.max_minutes < 0:
         raise ConfigError("max_minutes", f"must be >= 0, got {cfg.max_minutes}")
     if cfg.start_std < 0:
         raise ConfigError("start_std", f"must be >= 0, got {cfg.start_std}")
     if not 0 <= cfg.stop_at_suc <= 100:
         raise ConfigError("stop_at_suc", f"must be a percentage in [0, 100], got {cfg.stop_at_suc}")
-    return cfg
+
+
+def _check_init_checkpoint(checkpoint: str, task: str) -> None:
+    """ConfigError unless ``checkpoint`` (as given, else repository-relative) loads and was trained on ``task``."""
+    from atdrone.models.checkpoint import CheckpointError, load_checkpoint
+
+    path = Path(checkpoint)
+    if not path.exists():
+        path = repo_path(path)
+    if not path.is_file():
+        what = "is a directory, not a checkpoint file" if path.is_dir() else "no such file (train that run first)"
+        raise ConfigError("init_checkpoint", f"{checkpoint}: {what}")
+    try:
+        load_checkpoint(path, expect_task=task)
+    except CheckpointError as exc:
+        raise ConfigError("init_checkpoint", str(exc)) from None
 
 
 class Trainer:

@@ -85,9 +85,13 @@ class PolicyModel(Protocol):
 
 ARCHITECTURES: dict[str, type[PolicyModel]] = {"ActorCritic": ActorCritic}
 
+# the most parameters a network may have (about 400 MB of float32 weights): the paper's
+# ActorCritic has 85,123, the widest that NetConfig's limits allow 69,679,107
+MAX_PARAMETERS = 100_000_000
 
-def build_model(architecture: Mapping[str, Any]) -> PolicyModel:
-    """A fresh network of the header entry ``architecture``; CheckpointError when it names no known one."""
+
+def _construct(architecture: Mapping[str, Any]) -> PolicyModel:
+    """The network of ``architecture`` built on the current device; CheckpointError when it cannot be."""
     config = dict(architecture)
     name = config.pop("class", None)
     cls = ARCHITECTURES.get(name) if isinstance(name, str) else None
@@ -97,5 +101,27 @@ def build_model(architecture: Mapping[str, Any]) -> PolicyModel:
         raise CheckpointError(f"architecture {name!r} is not a torch nn.Module")
     try:
         return cls.from_architecture(config)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, RuntimeError) as exc:
         raise CheckpointError(f"architecture {dict(architecture)!r} cannot be built: {exc}") from None
+
+
+def skeleton(architecture: Mapping[str, Any]) -> PolicyModel:
+    """The network of ``architecture`` on torch's meta device: shapes without memory.
+
+    CheckpointError when it names no known network, its config is refused, or it has
+    more than :data:`MAX_PARAMETERS` parameters, so a header cannot make a loader
+    allocate a huge network.
+    """
+    with torch.device("meta"):
+        model = _construct(architecture)
+    count = sum(p.numel() for p in model.parameters())
+    if count > MAX_PARAMETERS:
+        raise CheckpointError(f"architecture {dict(architecture)!r} has {count:,} parameters, over {MAX_PARAMETERS:,}")
+    return model
+
+
+def build_model(architecture: Mapping[str, Any]) -> PolicyModel:
+    """A fresh network of the header entry ``architecture``; CheckpointError when it names no known one
+    or is too big (checked on the meta device first, :func:`skeleton`)."""
+    skeleton(architecture)
+    return _construct(architecture)

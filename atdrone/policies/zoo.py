@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from atdrone.config import ConfigError, parse_document, read_document, repo_path
+from atdrone.errors import UserError
 from atdrone.policies.base import Policy, PolicyError
 from atdrone.policies.rules import GreedyPolicy, VicsekPolicy
 
@@ -124,7 +125,9 @@ def load_checkpoint(path: str | Path) -> Policy:
 
     try:
         return load_policy(path)
-    except Exception as exc:  # a damaged or foreign file: torch, pickle, JSON and key errors alike
+    except UserError as exc:  # a damaged, edited or foreign file: its message names the file and the cause
+        raise PolicyError(f"cannot load checkpoint: {exc}") from exc
+    except Exception as exc:  # anything the checks did not foresee, still one line
         raise PolicyError(f"cannot load checkpoint {str(path)!r}: {type(exc).__name__}: {exc}") from exc
 
 

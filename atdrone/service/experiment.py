@@ -26,9 +26,10 @@ from atdrone.config import (
     OPTIONAL,
     ConfigError,
     check_run_name,
+    check_seed,
     check_task_field,
     load_config,
-    read_document,
+    read_object,
     require_at_least,
     require_at_most,
 )
@@ -114,41 +115,59 @@ class ExperimentConfig:
         return doc
 
 
-def load_experiment(path_or_doc: str | Path | dict[str, Any], **overrides: Any) -> ExperimentConfig:
-    """A validated ExperimentConfig from a JSON file (or mapping) plus overrides."""
+def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> ExperimentConfig:
+    """A validated ExperimentConfig from a JSON file (or mapping) plus overrides.
+
+    Everything a run would trip over later is checked here, before any training: the
+    run name, seed and sizes, the task, the PPO section, the algorithm's section against
+    the shared settings, and every zoo named (final_zoo, the algorithm's ``zoo``) down to
+    its checkpoint files.
+    """
     from atdrone.population import ALGORITHMS
 
-    base = dict(path_or_doc) if isinstance(path_or_doc, Mapping) else read_document(path_or_doc, "experiments")
+    base = dict(path_or_doc) if isinstance(path_or_doc, Mapping) else read_object(path_or_doc, "experiments")
     for key, where in MOVED.items():
         if key in base:
             raise ConfigError(key, f"moved: set it in {where} (see atdrone/service/experiment.py)")
     algorithm = base.get("algorithm")
-    if algorithm not in ALGORITHMS:
+    if not isinstance(algorithm, str) or algorithm not in ALGORITHMS:
         raise ConfigError("algorithm", f"must be one of {sorted(ALGORITHMS)}, got {algorithm!r}")
     base["section"] = base.pop(algorithm, {})
     if isinstance(base.get("name"), str) and overrides.get("experiment") is None:
         overrides["experiment"] = base.get("experiment") or base["name"]
     cfg: ExperimentConfig = load_config(ExperimentConfig, base, "experiments", **overrides)
+    _check_settings(cfg)
     check_task_field(cfg.task)
     ppo = ppo_config(cfg.ppo, cfg.preset)
-    require_at_least(cfg, POSITIVE_INTS)
     if ppo.num_envs % cfg.num_workers:
         raise ConfigError(
             "ppo.num_envs", f"{ppo.num_envs} environments cannot be split evenly over {cfg.num_workers} workers"
         )
-    ALGORITHMS[cfg.algorithm].check_experiment(cfg.algorithm_config(), cfg, cfg.algorithm)  # "<algorithm>.<key>"
+    section = cfg.algorithm_config()
+    ALGORITHMS[cfg.algorithm].check_experiment(section, cfg, cfg.algorithm)  # "<algorithm>.<key>"
+    if isinstance(getattr(section, "zoo", None), str) and section.zoo:
+        _check_zoo(section.zoo, f"{cfg.algorithm}.zoo")
     if cfg.final_zoo:
-        try:
-            load_zoo(cfg.final_zoo).check()
-        except (ConfigError, PolicyError) as exc:
-            raise ConfigError("final_zoo", str(exc)) from None
+        _check_zoo(cfg.final_zoo, "final_zoo")
+    return cfg
+
+
+def _check_settings(cfg: ExperimentConfig) -> None:
+    """The shared settings that need no file: run name, seed, bounds."""
     check_run_name(cfg.name)
+    check_seed(cfg.seed)
+    require_at_least(cfg, POSITIVE_INTS)
     require_at_most(cfg, LIMITS)
-    if cfg.seed < 0:
-        raise ConfigError("seed", f"must be >= 0, got {cfg.seed}")
     if cfg.learner_gpus < 0:
         raise ConfigError("learner_gpus", f"must be >= 0, got {cfg.learner_gpus}")
-    return cfg
+
+
+def _check_zoo(zoo: str, path: str) -> None:
+    """ConfigError at ``path`` unless every member of ``zoo`` can be built (checkpoint files present and intact)."""
+    try:
+        load_zoo(zoo).check()
+    except (ConfigError, PolicyError) as exc:
+        raise ConfigError(path, str(exc)) from None
 
 
 def registry_name(run: str) -> str:
