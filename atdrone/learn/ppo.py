@@ -30,6 +30,7 @@ class PPOConfig:
     training signal: evaluation always reports the task's own reward).
     history: past frames of its own observations and actions a network reads (0 = the
     current observation only; see atdrone.models.history).
+    teammate_coef: the weight of a teammate model's decoder loss (NAHT-D) in the update.
     """
 
     num_envs: int = 64
@@ -52,6 +53,7 @@ class PPOConfig:
     collision_credit: Literal["team", "own"] = "team"
     collision_scale: float = 1.0
     history: int = 0
+    teammate_coef: float = 1.0
 
 
 PRESETS: dict[str, PPOConfig] = {
@@ -95,6 +97,8 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
             f"num_envs x rollout_steps must be <= {MAX_SAMPLES:,} per update, got {cfg.num_envs:,}"
             f" x {cfg.rollout_steps:,}",
         )
+    if cfg.teammate_coef < 0:
+        raise ConfigError(f"{path}.teammate_coef", f"must be >= 0, got {cfg.teammate_coef}")
     for name in ("lr", "clip", "max_grad_norm"):
         if getattr(cfg, name) <= 0:
             raise ConfigError(f"{path}.{name}", f"must be > 0, got {getattr(cfg, name)}")
@@ -169,7 +173,8 @@ def ppo_update(
     """Epochs of clipped-surrogate PPO over a flat batch; returns loss statistics.
 
     batch: obs (N, D), u (N,) pre-squash actions, logp (N,), adv (N,), ret (N,),
-    and state (N, S) for a centralised critic.
+    state (N, S) for a centralised critic, and mates (N, P - 1, 3) for a teammate model
+    with a decoder, whose loss (``decoder_loss``) joins the update times teammate_coef.
     """
     device = next(model.parameters()).device
     t = {k: torch.as_tensor(v, device=device) for k, v in batch.items()}
@@ -178,6 +183,9 @@ def ppo_update(
         for group in optimizer.param_groups:
             group["lr"] = lr
     stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+    decoder = "mates" in t and getattr(model, "decoder", None) is not None
+    if decoder:
+        stats["decoder_loss"] = []
     mb = min(cfg.minibatch_size, n)
     groups = model.parameter_groups()  # actor and critic: the critic's large gradients must not shrink the actor's
     for _ in range(cfg.epochs):
@@ -196,6 +204,10 @@ def ppo_update(
             vloss = 0.5 * ((v - t["ret"][idx]) ** 2).mean()
             ent = dist.entropy().mean()
             loss = pg + cfg.vf_coef * vloss - cfg.ent_coef * ent
+            if decoder:
+                dec = model.decoder_loss(t["obs"][idx], t["mates"][idx])  # type: ignore[attr-defined]
+                loss = loss + cfg.teammate_coef * dec
+                stats["decoder_loss"].append(float(dec.detach()))
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             for params in groups:

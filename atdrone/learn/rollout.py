@@ -50,6 +50,8 @@ class Fragment:
     dones: np.ndarray  # (T, B)
     last_values: np.ndarray  # (B, k)
     state: np.ndarray | None = None  # (T, B, S) global state for a centralised critic
+    # (T, B, k, P - 1, 3) for a teammate model: each teammate's executed turn and pre-squash (mean, std)
+    mates: np.ndarray | None = None
     episodes: list[dict[str, Any]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
@@ -74,6 +76,8 @@ class Fragment:
             "adv": adv.reshape(-1),
             "ret": ret.reshape(-1),
         }
+        if self.mates is not None:
+            out["mates"] = self.mates.reshape(-1, *self.mates.shape[3:])
         per_env = {"state": self.state} if self.state is not None else {}
         if extras:
             per_env.update(self.extras)
@@ -98,6 +102,7 @@ def concat_fragments(fragments: Sequence[Fragment]) -> Fragment:
         dones=cat("dones", 1),
         last_values=cat("last_values", 0),
         state=cat("state", 1) if fragments[0].state is not None else None,
+        mates=cat("mates", 1) if fragments[0].mates is not None else None,
         episodes=[e for f in fragments for e in f.episodes],
         timings={k: sum(f.timings.get(k, 0.0) for f in fragments) for k in fragments[0].timings},
         extras={k: np.concatenate([f.extras[k] for f in fragments], 1) for k in fragments[0].extras},
@@ -159,6 +164,23 @@ class RolloutWorker:
         self._rows = np.repeat(np.arange(B), k)
         self._keys = np.tile(np.arange(k), B)
         self.memory = self.model.memory(B, k, self.core.obs_dim)
+        self.models_teammates = bool(getattr(self.model, "models_teammates", False))
+
+    def mate_targets(
+        self, slots: np.ndarray, actions: np.ndarray, dists: np.ndarray, mean: np.ndarray, std: np.ndarray
+    ) -> np.ndarray:
+        """(B, k, P - 1, 3): for each learner (in ``slots`` (B, k)), each teammate in the observation's
+        order (the other slots, ascending) with its executed turn (``actions`` (B, P)) and pre-squash
+        (mean, std): the learners' own (``mean``, ``std`` (B, k)), a trained partner's from ``dists``
+        (B, P, 2), NaN for a rule-based partner."""
+        P = self.core.num_p
+        rows = np.arange(len(slots))[:, None]
+        both = dists.copy()
+        both[rows, slots, 0], both[rows, slots, 1] = mean, std
+        table = np.vstack([np.delete(np.arange(P), s) for s in range(P)])  # (P, P - 1)
+        others = table[slots]  # (B, k, P - 1)
+        r = rows[:, :, None]
+        return np.stack([actions[r, others], both[r, others, 0], both[r, others, 1]], -1).astype(np.float32)
 
     @property
     def drawn(self) -> Counter[str]:
@@ -225,6 +247,7 @@ class RolloutWorker:
         t_inf = t_sim = 0.0
         state = self._state()
         states = np.empty((steps, B, state.shape[-1]), np.float32) if state is not None else None
+        mates = np.empty((steps, B, k, self.core.num_p - 1, 3), np.float32) if self.models_teammates else None
         for t in range(steps):
             t0 = time.perf_counter()
             inputs = self.inputs(self.obs)
@@ -236,7 +259,8 @@ class RolloutWorker:
             v = self._values(inputs, state)
             actions = torch.tanh(ut).numpy()
             t1 = time.perf_counter()
-            extras["learner_slots"][t] = self.match.learner_slots  # the teams of this step, before resets
+            slots = self.match.learner_slots.copy()  # the teams of this step, before resets
+            extras["learner_slots"][t] = slots
             if u_num:
                 extras["partner_members"][t] = self.match.members
                 partner_slots = self.match.partner_slots.copy()
@@ -247,6 +271,10 @@ class RolloutWorker:
             obs[t], u[t], logp[t], values[t], rewards[t], dones[t] = inputs, ut.numpy(), lp.numpy(), v, r, d
             if u_num:
                 extras["partner_actions"][t] = np.take_along_axis(info["actions"], partner_slots, axis=1)
+            if mates is not None:
+                mates[t] = self.mate_targets(
+                    slots, info["actions"], info["dists"], dist.mean.numpy(), dist.stddev.numpy()
+                )
             self.memory.record(self.obs.reshape(B * k, D), self._rows, self._keys, actions.reshape(-1))
             if states is not None:
                 states[t] = state
@@ -278,6 +306,7 @@ class RolloutWorker:
             dones=dones,
             last_values=last,
             state=states,
+            mates=mates,
             episodes=episodes,
             timings={"simulation": t_sim, "inference": t_inf},
             extras=extras,

@@ -19,6 +19,7 @@ from torch import nn
 from atdrone.errors import UserError
 from atdrone.models.history import DroneMemory
 from atdrone.models.networks import ActorCritic
+from atdrone.models.teammate import TeammateActorCritic
 
 
 class CheckpointError(UserError, ValueError):
@@ -83,7 +84,7 @@ class PolicyModel(Protocol):
     def eval(self) -> Self: ...
 
 
-ARCHITECTURES: dict[str, type[PolicyModel]] = {"ActorCritic": ActorCritic}
+ARCHITECTURES: dict[str, type[PolicyModel]] = {"ActorCritic": ActorCritic, "TeammateActorCritic": TeammateActorCritic}
 
 # the most parameters a network may have (about 400 MB of float32 weights): the paper's
 # ActorCritic has 85,123, the widest that NetConfig's limits allow 69,679,107

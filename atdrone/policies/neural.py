@@ -48,6 +48,8 @@ class NeuralPolicy:
         self.generator = torch.Generator().manual_seed(seed)
         self.memory: DroneMemory | None = None
         self._obs_dim = 0
+        # the pre-squash Gaussian (mean, std), each (M,), of the last act: what a teammate model reconstructs
+        self.last_dist: tuple[np.ndarray, np.ndarray] | None = None
 
     def evaders(self, obs_dim: int) -> int:
         """Evaders in an observation of width ``obs_dim`` for this policy's team of ``num_p``."""
@@ -90,6 +92,7 @@ class NeuralPolicy:
         env, key = np.asarray(env), np.asarray(key)
         dist = self.model.dist(torch.from_numpy(self.inputs_of(obs, env, key)), self.evaders(obs.shape[-1]))
         u = dist.mean
+        self.last_dist = (dist.mean.numpy().astype(np.float64), dist.stddev.numpy().astype(np.float64))
         if not self.deterministic:
             u = u + dist.stddev * torch.randn(u.shape, generator=self.generator)
         actions = torch.tanh(u).numpy().astype(np.float64)

@@ -7,9 +7,11 @@ functions) sits beside them. Adding an algorithm is one module and one entry her
 
 from atdrone.population.base import Algorithm
 from atdrone.population.br import BestResponse
+from atdrone.population.fcp import FCP
 from atdrone.population.hola import Hola, HolaNoG
 from atdrone.population.pbt import PBT
 from atdrone.population.sp import SelfPlay
+from atdrone.population.teammate import MAPPO, NahtD, NahtDNoDec
 
 ALGORITHMS: dict[str, type[Algorithm]] = {
     "sp": SelfPlay,
@@ -17,6 +19,10 @@ ALGORITHMS: dict[str, type[Algorithm]] = {
     "pbt": PBT,
     "hola": Hola,
     "hola_no_g": HolaNoG,
+    "mappo": MAPPO,
+    "naht_d": NahtD,
+    "naht_d_no_dec": NahtDNoDec,
+    "fcp": FCP,
 }
 
 __all__ = ["ALGORITHMS", "Algorithm"]

@@ -20,8 +20,8 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from atdrone.config import ConfigError, parse_document
-from atdrone.learn.ppo import PPOConfig
+from atdrone.config import ConfigError, TaskConfig, parse_document
+from atdrone.learn.ppo import PPOConfig, architecture
 from atdrone.teams.partners import PartnerDistribution
 
 Team = tuple[str, ...]
@@ -127,8 +127,13 @@ class Oracle(Protocol):
         environment and episode (self-play when None)."""
         ...
 
-    def register(self, trained: Trained, parents: Sequence[str]) -> str:
-        """Save the trained learner as a population member (checkpoint + registry row); returns its id."""
+    def register(self, trained: Trained, parents: Sequence[str], tags: Mapping[str, Any] | None = None) -> str:
+        """Save the trained learner as a population member (checkpoint + registry row, with ``tags``
+        and the algorithm's :meth:`Algorithm.member_tags`); returns its id."""
+        ...
+
+    def checkpoint_path(self, member: str) -> Path:
+        """Where a member's checkpoint file is."""
         ...
 
     def retire(self, members: Sequence[str]) -> None:
@@ -169,6 +174,20 @@ class Algorithm:
     def generation(self, oracle: Oracle) -> GenerationReport:
         raise NotImplementedError
 
+    def architecture(self, ppo: PPOConfig, task: TaskConfig) -> dict[str, Any]:
+        """The learners' network header (default: the PPO config's actor-critic, decentralised critic)."""
+        return architecture(ppo)
+
+    @classmethod
+    def result_tags(cls, cfg: Any) -> dict[str, str]:
+        """What a run of this section may call its result (e.g. a best response): the parent MLflow
+        run's tags (``atdrone.<key>``) and every registered member's registry tags."""
+        return {}
+
+    def member_tags(self) -> dict[str, str]:
+        """Tags of every member this algorithm registers: :meth:`result_tags` of its section."""
+        return self.result_tags(self.config)
+
     def state(self) -> dict[str, Any]:
         """JSON state to continue after the last completed generation."""
         return {"population": list(self.population)}
@@ -201,3 +220,27 @@ def record(member: str, trained: Trained) -> TrainingRecord:
         trained.env_steps,
         trained.samples,
     )
+
+
+def frozen_snapshots(
+    oracle: Oracle, seeds: int, levels: int, tags: Mapping[str, Any] | None = None
+) -> tuple[list[str], list[TrainingRecord], list[int]]:
+    """``seeds`` self-play runs, each frozen at ``levels`` evenly spaced skill levels of its
+    ``updates_per_generation`` updates (each level's member is the next one's parent).
+
+    Returns the members (run by run, early to final), their training records and the
+    updates of each level. HOLA-Drone V2's Pi_0 and FCP's partner pool are built this way.
+    """
+    total = oracle.updates_per_generation
+    splits = [total // levels + (i < total % levels) for i in range(levels)]
+    members: list[str] = []
+    training: list[TrainingRecord] = []
+    for _ in range(seeds):
+        parent: str | None = None
+        for updates in splits:
+            trained = oracle.train(parent, None, updates=updates)
+            member = oracle.register(trained, [parent] if parent else [], tags)
+            training.append(record(member, trained))
+            members.append(member)
+            parent = member
+    return members, training, splits

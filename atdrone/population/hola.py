@@ -47,7 +47,16 @@ from typing import Any
 
 import atdrone.population.hypergraph as hg
 from atdrone.config import ConfigError
-from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Oracle, Team, TrainingRecord, record
+from atdrone.population.base import (
+    Algorithm,
+    GenerationReport,
+    MatchResult,
+    Oracle,
+    Team,
+    TrainingRecord,
+    frozen_snapshots,
+    record,
+)
 from atdrone.teams.partners import profiles, slot_counts
 
 WEIGHTS = {"return": "REW", "SUC": "SUC"}  # weight name -> match metric
@@ -154,21 +163,10 @@ class Hola(Algorithm):
 
     def _pi0(self, oracle: Oracle) -> GenerationReport:
         """Pi_0: pi0_seeds self-play runs, each frozen at pi0_levels skill levels; N_0: the first seeds' finals."""
-        cfg = self.config
-        total = oracle.updates_per_generation  # >= pi0_levels (check_experiment)
-        splits = [total // cfg.pi0_levels + (i < total % cfg.pi0_levels) for i in range(cfg.pi0_levels)]
-        training: list[TrainingRecord] = []
-        finals = []
-        for _ in range(cfg.pi0_seeds):
-            parent: str | None = None
-            for updates in splits:
-                trained = oracle.train(parent, None, updates=updates)
-                member = oracle.register(trained, [parent] if parent else [])
-                training.append(record(member, trained))
-                self.population.append(member)
-                parent = member
-            assert parent is not None
-            finals.append(parent)
+        cfg = self.config  # updates_per_generation >= pi0_levels (check_experiment)
+        members, training, splits = frozen_snapshots(oracle, cfg.pi0_seeds, cfg.pi0_levels)
+        self.population.extend(members)
+        finals = members[cfg.pi0_levels - 1 :: cfg.pi0_levels]
         self.learners = finals[: cfg.learners_per_generation]
         return GenerationReport(
             oracle.generation,

@@ -32,7 +32,7 @@ import ray
 
 from atdrone.config import load_task
 from atdrone.learn.learner import LearnerSpec
-from atdrone.learn.ppo import architecture, ppo_config
+from atdrone.learn.ppo import ppo_config
 from atdrone.models.checkpoint import load_checkpoint
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Team, Trained
@@ -67,7 +67,6 @@ class Coordinator:
         self.run_dir = Path(run_dir)
         self.task = load_task(cfg.task)
         self.ppo = ppo_config(cfg.ppo, cfg.preset)
-        self.architecture = architecture(self.ppo)
         # the run's registry actor: passed in (the handle keeps it alive) or found by name
         self.registry = registry if registry is not None else find_registry_actor(registry_name(cfg.name))
         self.num_p = self.task.players.num_p
@@ -76,6 +75,7 @@ class Coordinator:
         self.updates_per_generation = cfg.updates_per_generation
         self.workers = [RolloutWorkerActor.remote(self.task) for _ in range(cfg.num_workers)]
         self.algorithm = algorithm(algorithm.parse_config(cfg.section, cfg.algorithm), cfg.seed)
+        self.architecture = self.algorithm.architecture(self.ppo, self.task)  # the learners' network
         state = dict(state or {})
         self.generation: int = state.get("generation", 0)
         # the run's totals so far: training env steps and learner samples, evaluation env steps
@@ -214,8 +214,9 @@ class Coordinator:
             handle=learner,
         )
 
-    def register(self, trained: Trained, parents: Sequence[str]) -> str:
+    def register(self, trained: Trained, parents: Sequence[str], tags: Mapping[str, Any] | None = None) -> str:
         member = member_id(self.cfg.algorithm, self.generation, self.registered)
+        tags = {**self.algorithm.member_tags(), **dict(tags or {})}
         self.registered += 1
         self.new_members.append(member)
         last = trained.history[-1] if trained.history else {}
@@ -233,6 +234,7 @@ class Coordinator:
             "parents": list(parents),
             "partners": trained.partners,
             "metrics": {k: v for k, v in last.items() if k.startswith("train/")},
+            "tags": tags,
         }
         full = ray.get(trained.handle.save.remote(str(path), header))
         ray.kill(trained.handle)
@@ -246,6 +248,7 @@ class Coordinator:
                 checkpoint=str(path),
                 sha256=full["sha256"],
                 metrics=header["metrics"],
+                tags=tags,
                 member_id=member,
             )
         )

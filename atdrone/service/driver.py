@@ -177,6 +177,7 @@ def _generations(
     """Ask the coordinator for the remaining generations, logging each; then the final evaluation."""
     import ray
 
+    from atdrone.population import ALGORITHMS
     from atdrone.tracking import Tracker
 
     state_path = run_dir / STATE_FILE
@@ -192,7 +193,14 @@ def _generations(
         if "mlflow_run_id" not in saved:  # from now on a rerun without --resume is refused
             _write_json(state_path, {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id})
         tracker.log_params({"experiment": cfg.to_dict()})
-        tracker.set_tags({"atdrone.algorithm": cfg.algorithm, "atdrone.task": cfg.task})
+        labels = ALGORITHMS[cfg.algorithm].result_tags(cfg.algorithm_config())  # e.g. a best response
+        tracker.set_tags(
+            {
+                "atdrone.algorithm": cfg.algorithm,
+                "atdrone.task": cfg.task,
+                **{f"atdrone.{k}": v for k, v in labels.items()},
+            }
+        )
         tracker.log_artifact(run_dir / "config.json")
         start = saved.get("coordinator", {}).get("generation", 0)
         for g in range(start, cfg.generations):

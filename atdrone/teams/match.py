@@ -6,7 +6,9 @@ from the zoo, uniformly unless a sampler is given), steps the partners itself, a
 exposes the learners' slots only: observations (B, num_ctrl, obs_dim) and actions
 (B, num_ctrl). ``info["team"]`` records the team of the episodes played in the step:
 ``learner_slots`` (B, num_ctrl), ``partner_slots`` and ``partner_members``
-(B, num_unctrl) and ``partners``, the members' names (B, num_unctrl).
+(B, num_unctrl) and ``partners``, the members' names (B, num_unctrl). ``info["dists"]``
+(B, num_p, 2) holds the pre-squash Gaussian (mean, std) of every partner that has one
+(a trained drone's ``last_dist``), NaN for rule-based partners and learner slots.
 """
 
 from __future__ import annotations
@@ -121,8 +123,9 @@ class Match:
         slot = self.learner_slots.reshape(-1)
         return DroneBatch(obs=self._obs[env, slot], env=env, slot=slot, poses=self.core.poses())
 
-    def partner_actions(self, actions: np.ndarray) -> None:
-        """Fill the partner slots of ``actions`` (B, num_p) from the partner policies."""
+    def partner_actions(self, actions: np.ndarray, dists: np.ndarray | None = None) -> None:
+        """Fill the partner slots of ``actions`` (B, num_p) from the partner policies, and of ``dists``
+        (B, num_p, 2) the (mean, std) of those whose policy exposes its last distribution."""
         assert self._obs is not None
         poses = self.core.poses()
         for m, policy in enumerate(self.partners):
@@ -130,6 +133,9 @@ class Match:
             if len(env):
                 slot = self.partner_slots[env, j]
                 actions[env, slot] = policy.act(DroneBatch(self._obs[env, slot], env, slot, poses))
+                last = getattr(policy, "last_dist", None)
+                if dists is not None and last is not None:
+                    dists[env, slot, 0], dists[env, slot, 1] = last
 
     def step(self, learner_actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step with the learners' actions (B, num_ctrl); partners act themselves.
@@ -146,9 +152,11 @@ class Match:
             raise ValueError(f"learner actions must have shape {(B, self.num_ctrl)}, got {learner_actions.shape}")
         actions = np.empty((B, self.core.num_p))
         actions[self._rows, self.learner_slots] = learner_actions
-        self.partner_actions(actions)
+        dists = np.full((B, self.core.num_p, 2), np.nan)
+        self.partner_actions(actions, dists)
         obs, rewards, dones, info = self.core.step(actions)
         info["actions"] = actions  # every slot's turn as executed: learners' and partners'
+        info["dists"] = dists
         info["final_obs"] = self.learner_view(info["final_obs"])
         info["team"] = self.team()
         if dones.any():

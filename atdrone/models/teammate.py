@@ -1,0 +1,232 @@
+"""NAHT-D's network (the paper's appendix "NAHT-D algorithm"): MAPPO plus a teammate model.
+
+The teammate model reads the drone's last ``history`` = k steps besides the current one
+(the per-drone memory of :mod:`atdrone.models.history`: observations and own actions)
+as three streams, each through its own fully connected layer:
+
+- evaders: the evader blocks of the k + 1 frames;
+- own state: the nearest-obstacle block of the k + 1 frames and the last k own turns;
+- teammates: the teammate blocks (relative positions) of the k + 1 frames.
+
+The three stream features are combined by a learned weighted average (softmax weights)
+into one ``embed_dim`` (16) embedding. The actor reads the current observation (the
+entity trunk of :mod:`atdrone.models.networks`) plus the embedding; the critic is
+MAPPO's centralised critic over the global state, plus the embedding when
+``critic_embedding``. The decoder (absent when ``decoder`` is false: "w/o Dec") maps
+the embedding to a Gaussian over each teammate's pre-squash action, teammates in the
+observation's slot order; :meth:`TeammateActorCritic.decoder_loss` scores it against
+what the teammates did (see that method). ``detach_embedding`` keeps the policy and
+value losses out of the encoder (it then learns from the decoder alone, as POAM does).
+
+Streams keep every entity (no pooling), so the encoder needs the task shape
+(``num_p``, ``num_e``) in its config: a NAHT-D network flies its own task's team size.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import nn
+
+from atdrone.envs.core import ENTITY_FEATURES
+from atdrone.models.history import DroneMemory, ObsHistory
+from atdrone.models.networks import NET_LIMITS, EntityTrunk, GlobalEncoder, NetConfig, _layer
+
+if TYPE_CHECKING:
+    from atdrone.models.architectures import PolicyModel
+
+LOG_STD_RANGE = (-5.0, 2.0)  # the decoder's predicted log-std, clamped
+MATE_TARGETS = 3  # per teammate: executed turn in [-1, 1], mean and std of its pre-squash Gaussian (NaN: a rule)
+RULE_TURN_LIMIT = 1.0 - 1e-3  # executed turns are clamped off +-1 before atanh
+
+
+@dataclass(frozen=True)
+class TeammateConfig:
+    """The network: the actor-critic's sizes (entity_dim, hidden, init_log_std, proximity), the task
+    shape, past steps read (history >= 1), the embedding width, the decoder's hidden width, and the
+    choices the paper leaves open (decoder on, critic_embedding, detach_embedding)."""
+
+    num_p: int = 4
+    num_e: int = 2
+    history: int = 1
+    embed_dim: int = 16
+    decoder_hidden: int = 64
+    decoder: bool = True
+    critic_embedding: bool = True
+    detach_embedding: bool = False
+    entity_dim: int = 64
+    hidden: int = 128
+    init_log_std: float = -0.5
+    proximity: float = 0.15
+
+    def __post_init__(self) -> None:
+        limits = {
+            **NET_LIMITS,
+            "history": (1, NET_LIMITS["history"][1]),
+            "num_p": (2, 64),
+            "num_e": (1, 64),
+            "embed_dim": (1, 1024),
+            "decoder_hidden": (1, 4096),
+        }
+        for name, (low, high) in limits.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f"{name} must be an integer between {low} and {high}, got {value!r}")
+        if self.detach_embedding and not self.decoder:
+            raise ValueError("detach_embedding needs the decoder: without it nothing would train the encoder")
+
+    def net(self) -> NetConfig:
+        """The entity trunk's config: the current observation only (the encoder reads the past)."""
+        return NetConfig(
+            entity_dim=self.entity_dim,
+            hidden=self.hidden,
+            init_log_std=self.init_log_std,
+            centralised_critic=True,
+            proximity=self.proximity,
+            history=0,
+        )
+
+    @property
+    def obs_dim(self) -> int:
+        return ENTITY_FEATURES * (self.num_p + self.num_e)
+
+
+class TeammateEncoder(nn.Module):
+    """Three streams of the last k + 1 frames -> one embedding (learned weighted average)."""
+
+    def __init__(self, cfg: TeammateConfig) -> None:
+        super().__init__()
+        frames, F = cfg.history + 1, ENTITY_FEATURES
+        self.cfg = cfg
+        self.evaders = nn.Sequential(_layer(frames * cfg.num_e * F, cfg.embed_dim), nn.Tanh())
+        self.own = nn.Sequential(_layer(frames * F + cfg.history, cfg.embed_dim), nn.Tanh())
+        self.mates = nn.Sequential(_layer(frames * (cfg.num_p - 1) * F, cfg.embed_dim), nn.Tanh())
+        self.stream_logits = nn.Parameter(torch.zeros(3))
+
+    def weights(self) -> torch.Tensor:
+        """The weighted average's weights over (evaders, own state, teammates)."""
+        return torch.softmax(self.stream_logits, 0)
+
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        cfg, D, h = self.cfg, self.cfg.obs_dim, self.cfg.history
+        lead = inputs.shape[:-1]
+        frames = inputs[..., : D * (h + 1)].reshape(*lead, h + 1, cfg.num_e + cfg.num_p, ENTITY_FEATURES)
+        past_actions = inputs[..., D * (h + 1) :]
+        E = cfg.num_e
+        streams = torch.stack(
+            [
+                self.evaders(frames[..., :E, :].reshape(*lead, -1)),
+                self.own(torch.cat([frames[..., E, :].reshape(*lead, -1), past_actions], -1)),
+                self.mates(frames[..., E + 1 :, :].reshape(*lead, -1)),
+            ],
+            -1,
+        )
+        return (streams * self.weights()).sum(-1)
+
+
+class TeammateActorCritic(nn.Module):
+    """NAHT-D: the teammate encoder's embedding feeds the actor (and the centralised critic); see the module."""
+
+    models_teammates = True  # the rollout records the teammates' actions and distributions for it
+
+    def __init__(self, cfg: TeammateConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg or TeammateConfig()
+        net = self.cfg.net()
+        E = self.cfg.embed_dim
+        self.encoder = TeammateEncoder(self.cfg)
+        self.actor = EntityTrunk(net, extra=E)
+        self.mu = _layer(net.hidden, 1, gain=0.01)
+        self.log_std = nn.Parameter(torch.full((1,), net.init_log_std))
+        self.global_encoder = GlobalEncoder(net)
+        self.critic = EntityTrunk(net, extra=self.global_encoder.out_dim + (E if self.cfg.critic_embedding else 0))
+        self.value_head = _layer(net.hidden, 1, gain=1.0)
+        self.decoder = (
+            nn.Sequential(
+                _layer(E, self.cfg.decoder_hidden),
+                nn.Tanh(),
+                _layer(self.cfg.decoder_hidden, 2 * (self.cfg.num_p - 1), gain=0.01),
+            )
+            if self.cfg.decoder
+            else None
+        )
+
+    @classmethod
+    def from_architecture(cls, config: Mapping[str, Any]) -> TeammateActorCritic:
+        return cls(TeammateConfig(**config))
+
+    @property
+    def centralised(self) -> bool:
+        return True
+
+    def architecture(self) -> dict[str, Any]:
+        return self.header(self.cfg)
+
+    @staticmethod
+    def header(cfg: TeammateConfig) -> dict[str, Any]:
+        """The checkpoint header's architecture entry of a network with ``cfg``."""
+        return {"class": "TeammateActorCritic", **asdict(cfg)}
+
+    def memory(self, num_envs: int, num_keys: int, obs_dim: int) -> DroneMemory:
+        return ObsHistory(self.cfg.history, num_envs, num_keys, obs_dim)
+
+    def widen_from(self, other: PolicyModel) -> None:
+        raise ValueError("a NAHT-D network starts from its own architecture only (no widening)")
+
+    def parameter_groups(self) -> tuple[list[nn.Parameter], list[nn.Parameter]]:
+        """(actor, encoder and decoder parameters; critic parameters), clipped separately by PPO."""
+        critic = {id(p) for m in (self.critic, self.value_head, self.global_encoder) for p in m.parameters()}
+        params = list(self.parameters())
+        return [p for p in params if id(p) not in critic], [p for p in params if id(p) in critic]
+
+    def embedding(self, inputs: torch.Tensor, for_policy: bool = True) -> torch.Tensor:
+        """The teammate embedding (..., embed_dim); detached for the policy when ``detach_embedding``."""
+        z = self.encoder(inputs)
+        return z.detach() if for_policy and self.cfg.detach_embedding else z
+
+    def dist(self, inputs: torch.Tensor, num_e: int) -> torch.distributions.Normal:
+        obs = inputs[..., : self.cfg.obs_dim]
+        mu = self.mu(self.actor(obs, num_e, self.embedding(inputs))).squeeze(-1)
+        return torch.distributions.Normal(mu, self.log_std.exp().expand_as(mu))
+
+    def value(
+        self, inputs: torch.Tensor, num_e: int, state: torch.Tensor | None = None, num_p: int = 0
+    ) -> torch.Tensor:
+        if state is None:
+            raise ValueError("the centralised critic needs the global state")
+        extra = [self.global_encoder(state, num_p or self.cfg.num_p)]
+        if self.cfg.critic_embedding:
+            extra.append(self.embedding(inputs))
+        obs = inputs[..., : self.cfg.obs_dim]
+        return self.value_head(self.critic(obs, num_e, torch.cat(extra, -1))).squeeze(-1)
+
+    def decode(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each teammate's predicted pre-squash Gaussian: mean and log-std, (..., num_p - 1) each."""
+        if self.decoder is None:
+            raise ValueError("this network has no decoder (NAHT-D w/o Dec)")
+        out = self.decoder(self.embedding(inputs, for_policy=False))
+        mean, log_std = out.reshape(*out.shape[:-1], self.cfg.num_p - 1, 2).unbind(-1)
+        return mean, log_std.clamp(*LOG_STD_RANGE)
+
+    def decoder_loss(self, inputs: torch.Tensor, mates: torch.Tensor) -> torch.Tensor:
+        """Mean reconstruction loss of the teammates' current actions.
+
+        ``mates`` (..., num_p - 1, 3): each teammate's executed turn a, and the mean and
+        std of its pre-squash action Gaussian (NaN for a rule-based partner). A learned
+        teammate scores KL(its Gaussian || the prediction); a rule-based one, which is
+        deterministic (a KL to a point mass is degenerate), the Gaussian negative
+        log-likelihood of atanh(a), its executed turn in pre-squash units.
+        """
+        mean, log_std = self.decode(inputs)
+        turn, m_p, s_p = mates.unbind(-1)
+        learned = torch.isfinite(s_p)
+        var = torch.exp(2 * log_std)
+        m_safe, s_safe = torch.where(learned, m_p, 0.0), torch.where(learned, s_p, 1.0)
+        kl = log_std - torch.log(s_safe) + (s_safe**2 + (m_safe - mean) ** 2) / (2 * var) - 0.5
+        target = torch.atanh(turn.clamp(-RULE_TURN_LIMIT, RULE_TURN_LIMIT))
+        nll = log_std + (target - mean) ** 2 / (2 * var) + 0.5 * math.log(2 * math.pi)
+        return torch.where(learned, kl, nll).mean()
