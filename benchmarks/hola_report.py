@@ -1,4 +1,5 @@
-"""HOLA-Drone V2 vs its "w/o g" ablation vs SP vs PBT at equal budgets, evaluated on the unseen zoos.
+"""Algorithms of the service at equal budgets, evaluated on the unseen zoos (HOLA-Drone V2 vs its
+"w/o g" ablation vs SP vs PBT; MAPPO vs NAHT-D vs NAHT-D w/o Dec vs FCP vs SP).
 
 Three resumable phases, each skipping what is already on disk (run it again, or with
 ``--resume`` after a kill, and it continues where it stopped):
@@ -20,6 +21,14 @@ Three resumable phases, each skipping what is already on disk (run it again, or 
 Usage: python benchmarks/hola_report.py [--tasks 4p2e5o 4p3e5o] [--seeds 0 1 2]
        [--algorithms hola hola_no_g sp pbt] [--phases train evaluate report]
        [--out reports/hola_report] [--results benchmarks/results/hola_report]
+
+The teammate-modelling comparison (MAPPO, NAHT-D and its ablation, FCP, SP; paired
+differences against SP and MAPPO; the training pool is the algorithms' default,
+configs/pools/train_pool.json; FCP's frozen pool counts in its budget):
+
+    python benchmarks/hola_report.py --tasks 4p2e1o 4p2e5o --algorithms sp mappo naht_d naht_d_no_dec fcp \
+        --references sp mappo --updates 32 --title "Teammate modelling" \
+        --out reports/teammate_report --results benchmarks/results/teammate_report
 """
 
 from __future__ import annotations
@@ -33,21 +42,27 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import scipy.stats
 
 from atdrone.learn.ppo import PPOConfig
 from atdrone.teams.evaluation import METRICS
 
-ALGORITHMS = ("hola", "hola_no_g", "sp", "pbt")
+ALGORITHMS = ("hola", "hola_no_g", "sp", "pbt", "mappo", "naht_d", "naht_d_no_dec", "fcp")
 ZOOS = ("zoo1", "zoo2", "zoo3")
 UPDATE_ENV_STEPS = PPOConfig().num_envs * PPOConfig().rollout_steps  # of the default preset: 64 x 128
 
 
-def plan(algorithm: str, env_steps: int, updates: int, hola: dict[str, Any]) -> dict[str, Any]:
+def plan(
+    algorithm: str, env_steps: int, updates: int, hola: dict[str, Any], fcp: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """Generations and the algorithm section giving about ``env_steps`` env steps per run."""
     total = max(1, round(env_steps / UPDATE_ENV_STEPS))  # learner updates of the whole run
     if algorithm in ("hola", "hola_no_g"):
         pi0 = hola["pi0_seeds"]  # generation 0 trains pi0_seeds self-play runs of `updates` updates each
         return {"generations": 1 + math.ceil((total - pi0 * updates) / updates), algorithm: dict(hola)}
+    if algorithm == "fcp":  # generation 0 also trains the frozen pool: seeds self-play runs of `updates` updates
+        fcp = dict(fcp or {"seeds": 3, "levels": 3})
+        return {"generations": max(1, math.ceil((total - fcp["seeds"] * updates) / updates)), "fcp": fcp}
     if algorithm == "pbt":  # two members, each `updates / 2` updates per generation
         return {
             "generations": math.ceil(total / updates),
@@ -80,7 +95,9 @@ def experiment(task: str, algorithm: str, seed: int, args: argparse.Namespace) -
         "gif": False,
         "out_dir": str(Path(args.out) / "runs"),
     }
-    doc.update(plan(algorithm, args.env_steps, args.updates, hola))
+    doc.update(
+        plan(algorithm, args.env_steps, args.updates, hola, {"seeds": args.fcp_seeds, "levels": args.fcp_levels})
+    )
     return doc
 
 
@@ -257,12 +274,12 @@ def report(args: argparse.Namespace) -> None:
         print("[report] nothing evaluated yet")
         return
     frame = pd.DataFrame(evals)
-    lines = [f"# HOLA-Drone V2 vs SP: {', '.join(args.tasks)}", ""]
+    lines = [f"# {args.title}: {', '.join(args.tasks)}", ""]
     lines.append(
-        f"Evaluation: {args.episodes} episodes per run and zoo; mean +- std over seeds "
-        f"(n: seeds). Paired differences: algorithm - SP of the same seed "
+        f"Evaluation: {args.episodes} episodes per run and zoo; mean +- std (ddof 1) over seeds "
+        f"(n: seeds). Paired differences: algorithm - reference of the same seed "
         "(sp: equal env steps; sp@samples: SP's generation with the learner samples closest to HOLA's), "
-        f"mean +- standard error over seeds."
+        f"mean +- standard error over seeds [t-based 95% confidence interval]."
     )
     doc: dict[str, Any] = {"episodes": args.episodes, "cells": [], "paired": [], "budget": budget_rows}
     for (task, zoo), cell in frame.groupby(["task", "zoo"], sort=True):
@@ -274,7 +291,7 @@ def report(args: argparse.Namespace) -> None:
             "|---" * (len(METRICS) + 2) + "|",
         ]
         for algorithm, g in cell.groupby("algorithm", sort=False):
-            stats = {m: (float(g[m].mean()), float(g[m].std(ddof=0))) for m in METRICS}
+            stats = {m: (float(g[m].mean()), float(g[m].std(ddof=1))) for m in METRICS}
             doc["cells"].append(
                 {
                     "task": task,
@@ -290,8 +307,10 @@ def report(args: argparse.Namespace) -> None:
         # SP at equal env steps and at equal learner samples; HOLA against its ablation; a variant
         # with its own SP runs (e.g. a doubled budget, "sp+2M") against those
         tagged_sp = sorted(a for a in cell.algorithm.unique() if a.startswith("sp+"))
-        for reference in ("sp", "sp@samples", "hola_no_g", *tagged_sp):
+        for reference in (*args.references, *tagged_sp):
             ref = cell[cell.algorithm == reference].set_index("seed")
+            if ref.empty:
+                continue
             others = cell[~cell.algorithm.isin(["sp", "sp@samples", reference])]
             if reference == "hola_no_g":
                 others = others[others.algorithm.str.startswith("hola")]
@@ -304,6 +323,7 @@ def report(args: argparse.Namespace) -> None:
                 diffs = {
                     m: (float(paired[m].mean()), float(paired[m].std(ddof=1) / np.sqrt(len(paired)))) for m in METRICS
                 }
+                t95 = float(scipy.stats.t.ppf(0.975, len(paired) - 1))
                 doc["paired"].append(
                     {
                         "task": task,
@@ -311,12 +331,14 @@ def report(args: argparse.Namespace) -> None:
                         "algorithm": algorithm,
                         "reference": reference,
                         "n": len(paired),
-                        **{m: {"diff": d, "se": s} for m, (d, s) in diffs.items()},
+                        **{m: {"diff": d, "se": s, "ci95": [d - t95 * s, d + t95 * s]} for m, (d, s) in diffs.items()},
                     }
                 )
                 lines.append(
                     f"| {algorithm} - {reference} | {len(paired)} | "
-                    + " | ".join(f"{d:+.1f} +- {s:.1f}" for d, s in diffs.values())
+                    + " | ".join(
+                        f"{d:+.1f} +- {s:.1f} [{d - t95 * s:+.1f}, {d + t95 * s:+.1f}]" for d, s in diffs.values()
+                    )
                     + " |"
                 )
     if budget_rows:
@@ -420,6 +442,13 @@ def main() -> None:
     parser.add_argument("--pi0-seeds", type=int, default=2, help="HOLA: self-play seeds of Pi_0")
     parser.add_argument("--pi0-levels", type=int, default=2, help="HOLA: skill levels per Pi_0 seed")
     parser.add_argument("--eta-prior", type=float, default=1.0, help="HOLA: the prior count of rho's eta")
+    parser.add_argument("--fcp-seeds", type=int, default=3, help="FCP: self-play runs of the frozen pool")
+    parser.add_argument("--fcp-levels", type=int, default=3, help="FCP: skill levels frozen per run")
+    parser.add_argument(
+        "--references", nargs="+", default=["sp", "sp@samples", "hola_no_g"], help="paired differences against these"
+    )
+    parser.add_argument("--crossplay", action="store_true", help="also play the final learners with each other")
+    parser.add_argument("--title", default="HOLA-Drone V2 vs SP", help="the report's heading")
     parser.add_argument("--tag", default="", help="a variant's name: its runs and rows are '<algorithm>+<tag>'")
     parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per run and zoo")
     parser.add_argument("--crossplay-episodes", type=int, default=200)
@@ -434,7 +463,8 @@ def main() -> None:
 
         torch.set_num_threads(1)  # beside a training run on the same cores
         evaluate_runs(args)
-        crossplay(args)
+        if args.crossplay or "hola" in args.algorithms:
+            crossplay(args)
     if "report" in args.phases:
         report(args)
 

@@ -41,7 +41,6 @@ if TYPE_CHECKING:
 
 LOG_STD_RANGE = (-5.0, 2.0)  # the decoder's predicted log-std, clamped
 MATE_TARGETS = 3  # per teammate: executed turn in [-1, 1], mean and std of its pre-squash Gaussian (NaN: a rule)
-RULE_TURN_LIMIT = 1.0 - 1e-3  # executed turns are clamped off +-1 before atanh
 
 
 @dataclass(frozen=True)
@@ -217,9 +216,11 @@ class TeammateActorCritic(nn.Module):
 
         ``mates`` (..., num_p - 1, 3): each teammate's executed turn a, and the mean and
         std of its pre-squash action Gaussian (NaN for a rule-based partner). A learned
-        teammate scores KL(its Gaussian || the prediction); a rule-based one, which is
-        deterministic (a KL to a point mass is degenerate), the Gaussian negative
-        log-likelihood of atanh(a), its executed turn in pre-squash units.
+        teammate scores KL(its Gaussian || the prediction), in pre-squash units; a
+        rule-based one, which is deterministic (a KL to a point mass is degenerate), the
+        Gaussian negative log-likelihood of the turn it executed, a in [-1, 1], under the
+        prediction's squashed mean tanh(mean) and its std (turn units: a turn at the
+        limit stays a bounded target).
         """
         mean, log_std = self.decode(inputs)
         turn, m_p, s_p = mates.unbind(-1)
@@ -227,6 +228,5 @@ class TeammateActorCritic(nn.Module):
         var = torch.exp(2 * log_std)
         m_safe, s_safe = torch.where(learned, m_p, 0.0), torch.where(learned, s_p, 1.0)
         kl = log_std - torch.log(s_safe) + (s_safe**2 + (m_safe - mean) ** 2) / (2 * var) - 0.5
-        target = torch.atanh(turn.clamp(-RULE_TURN_LIMIT, RULE_TURN_LIMIT))
-        nll = log_std + (target - mean) ** 2 / (2 * var) + 0.5 * math.log(2 * math.pi)
+        nll = log_std + (torch.nan_to_num(turn) - torch.tanh(mean)) ** 2 / (2 * var) + 0.5 * math.log(2 * math.pi)
         return torch.where(learned, kl, nll).mean()
