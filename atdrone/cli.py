@@ -171,8 +171,9 @@ def add_train(subparsers: Any) -> argparse.ArgumentParser:
         "train",
         help="train: one policy locally (configs/train) or a population on Ray (configs/experiments)",
         description="A config with 'mode' (configs/train/*.json) trains one policy in this process; a config "
-        "with 'algorithm' (configs/experiments/*.json: sp, pbt, hola, hola_no_g, br, mappo, naht_d, naht_d_no_dec, fcp) runs the Ray population "
-        "service, on a local Ray by default or on the cluster at --address. Tracked in MLflow "
+        "with 'algorithm' (configs/experiments/*.json: sp, pbt, hola, hola_no_g, br, mappo, naht_d, "
+        "naht_d_no_dec, fcp) runs the Ray population service, on a local Ray by default or on the cluster "
+        "at --address. Tracked in MLflow "
         "(MLFLOW_TRACKING_URI, default sqlite:///mlflow.db). Runs live in <out_dir>/<name>/.",
     )
     p.add_argument("config", help="config JSON (configs/train/*.json or configs/experiments/*.json)")
