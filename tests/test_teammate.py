@@ -20,6 +20,7 @@ from atdrone.policies.base import DroneBatch, StatelessPolicy
 from atdrone.policies.rules import GreedyPolicy
 from atdrone.policies.zoo import load_zoo
 from atdrone.service.experiment import load_experiment
+from atdrone.teams.partners import LEARNER_COPY, VariableCount
 from atdrone.teams.pools import check_pool, load_pool, shared_members
 
 TINY_PPO = PPOConfig(num_envs=16, rollout_steps=16, entity_dim=16, hidden=32, minibatch_size=128, epochs=1)
@@ -203,3 +204,39 @@ def test_a_copied_checkpoint_is_the_same_member(tmp_path):
     )
     assert shared_members(load_pool(pool)) == ["c = zoo2:sp_high, zoo3:sp_high"]
     assert check_pool("train_pool", False, "pool").name == "train_pool"  # the shipped pool is disjoint
+
+
+def test_variable_count_draws_how_many_partners_then_who():
+    dist = VariableCount(("a", "b", "c", LEARNER_COPY), min_partners=1)
+    draws = dist.draw(np.random.default_rng(0), 20_000, 2)
+    copies = (draws == 3).sum(1)
+    assert set(np.unique(copies)) == {0, 1}  # one or two partners, never none
+    assert abs((copies == 1).mean() - 0.5) < 0.02  # the count is uniform in 1..2
+    partners = draws[draws != 3]
+    assert np.allclose(np.bincount(partners) / len(partners), 1 / 3, atol=0.02)  # members uniform
+    assert (VariableCount(("a", LEARNER_COPY), 0).draw(np.random.default_rng(1), 5000, 2) == 1).all(1).mean() > 0.25
+    with pytest.raises(ValueError, match="followed by 'self'"):
+        VariableCount(("a", "b"))
+
+
+def test_a_slot_without_a_partner_is_flown_by_a_sampling_copy_of_the_learner():
+    worker = RolloutWorker(
+        "4p2e1o",
+        4,
+        _naht(),
+        TINY_PPO,
+        partners=[None, GreedyPolicy()],
+        num_ctrl=2,
+        sampler=lambda rng, n: np.tile([0, 1], (n, 1)),
+    )
+    frag = worker.collect(8)
+    assert frag.u.shape == (8, 16, 2)  # the copy's steps are not the learners' samples
+    assert frag.mates is not None
+    finite = np.isfinite(frag.mates[..., 2]).sum(-1)
+    assert (finite == 2).all()  # the other learner and the copy have Gaussians; the greedy drone none
+    stds = frag.mates[..., 2][np.isfinite(frag.mates[..., 2])]
+    assert np.allclose(stds, np.exp(-0.5), rtol=1e-5)  # the learner's own exploration noise
+    learned = frag.mates[np.isfinite(frag.mates[..., 2])]  # (n, 3): the other learner's and the copy's
+    sampled = np.abs(learned[:, 0] - np.tanh(learned[:, 1])) > 1e-4
+    assert sampled.mean() > 0.95  # the copy samples like the learners (a mean-playing copy: half would match)
+    assert set(worker.drawn) == {"greedy|self"}

@@ -29,7 +29,9 @@ from atdrone.learn.ppo import PPOConfig, gae
 from atdrone.models import build_model
 from atdrone.models.networks import global_state, squash_log_prob
 from atdrone.policies.base import Policy
+from atdrone.policies.neural import NeuralPolicy
 from atdrone.teams.match import Match, PartnerSampler
+from atdrone.teams.partners import LEARNER_COPY
 
 
 @dataclass
@@ -136,7 +138,9 @@ class RolloutWorker:
     ``ppo``: num_envs (unless ``num_envs`` is given: a service worker's share), gamma,
     collision_credit and collision_scale; ``partners`` and ``sampler``: the partner
     policies and how each episode draws them (default uniform per slot); without
-    partners the learners fill every slot (self-play).
+    partners the learners fill every slot (self-play). A partner given as None is a
+    copy of the learner (:data:`~atdrone.teams.partners.LEARNER_COPY`) that samples the
+    current weights: a slot of an episode with fewer partners, not trained on.
     """
 
     def __init__(
@@ -145,7 +149,7 @@ class RolloutWorker:
         seed: int,
         architecture: dict[str, Any],
         ppo: PPOConfig,
-        partners: Sequence[Policy] = (),
+        partners: Sequence[Policy | None] = (),
         num_ctrl: int | None = None,
         sampler: PartnerSampler | None = None,
         num_envs: int | None = None,
@@ -153,9 +157,13 @@ class RolloutWorker:
         self.core = BatchedPursuit(task, num_envs=ppo.num_envs if num_envs is None else num_envs, seed=seed)
         if num_ctrl is None:
             num_ctrl = self.core.cfg.players.num_ctrl if partners else self.core.num_p
-        self.match = Match(self.core, partners, seed=seed + 1, num_ctrl=num_ctrl, sampler=sampler)
         self.model = build_model(dict(architecture))
         self.model.eval()
+        copy = NeuralPolicy(
+            self.model, LEARNER_COPY, False, seed + 3, self.core.num_p, self.core.num_e
+        )  # flies partner slots given as None, sampling the current weights
+        policies = [copy if p is None else p for p in partners]
+        self.match = Match(self.core, policies, seed=seed + 1, num_ctrl=num_ctrl, sampler=sampler)
         self.ppo = ppo
         self.generator = torch.Generator().manual_seed(seed + 2)
         self.obs = self.match.reset(seed=seed)

@@ -32,7 +32,7 @@ class MemberSpec:
     """One zoo member: a rule-based drone (kind + params) or a checkpoint file."""
 
     name: str
-    kind: Literal["greedy", "vicsek", "checkpoint"]
+    kind: Literal["greedy", "vicsek", "checkpoint", "learner"]  # learner: the training learner's own copy
     checkpoint: str = ""
     params: dict[str, float] = field(default_factory=dict)
     note: str = ""
@@ -59,6 +59,8 @@ def _validate(spec: ZooSpec) -> None:
         if m.name in seen:
             raise ConfigError(f"members[{i}].name", f"duplicate member name {m.name!r}")
         seen.add(m.name)
+        if m.kind == "learner":
+            raise ConfigError(f"members[{i}].kind", "'learner' is the training learner's own copy, not a zoo member")
         if m.kind == "checkpoint" and not m.checkpoint:
             raise ConfigError(f"members[{i}].checkpoint", "missing key (a checkpoint member needs a file)")
         if m.kind != "checkpoint" and m.checkpoint:

@@ -2,8 +2,9 @@
 
 Each is one lineage of learners trained against a training pool
 (:mod:`atdrone.teams.pools`: partners drawn per environment and per episode, slots
-shuffled), never the evaluation zoos unless the section says ``"best_response": true``,
-and then every member is tagged a best response. Each generation continues the last
+shuffled, and by default the number of partners drawn too: ``min_partners``; the other
+slots are flown by a copy of the learner), never the evaluation zoos unless the section
+says ``"best_response": true``, and then every member is tagged a best response. Each generation continues the last
 learner for ``updates_per_generation`` updates.
 
 - ``mappo``: PPO with MAPPO's centralised critic over the global state; the learners'
@@ -21,21 +22,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from atdrone.config import ConfigError, TaskConfig
+from atdrone.config import ConfigError, TaskConfig, load_task
 from atdrone.learn.ppo import PPOConfig, architecture
 from atdrone.models.teammate import TeammateActorCritic, TeammateConfig
 from atdrone.population.base import Algorithm, GenerationReport, Oracle, record
-from atdrone.teams.partners import Uniform
+from atdrone.teams.partners import LEARNER_COPY, Uniform, VariableCount
 from atdrone.teams.pools import check_pool, pool_path, result_label
 
 
 @dataclass(frozen=True)
 class PoolConfig:
     """pool: the training pool (a name of configs/pools/ or a path); best_response: the pool may
-    share partners with the evaluation zoos (the result is then labelled a best response)."""
+    share partners with the evaluation zoos (the result is then labelled a best response);
+    min_partners: each episode draws its number of partners uniformly from min_partners to the
+    task's partner slots, the other slots flown by a copy of the learner (not trained on);
+    equal to the partner slots: always a full set of partners."""
 
     pool: str = "train_pool"
     best_response: bool = False
+    min_partners: int = 1
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,14 @@ class PoolLearner(Algorithm):
     def check_config(cls, cfg: Any, path: str) -> None:
         check_pool(cfg.pool, cfg.best_response, f"{path}.pool")
 
+    @classmethod
+    def check_experiment(cls, cfg: Any, experiment: Any, path: str) -> None:
+        slots = load_task(experiment.task).players.num_unctrl
+        if not 0 <= cfg.min_partners <= slots:
+            raise ConfigError(
+                f"{path}.min_partners", f"must be in 0..{slots} (the partner slots), got {cfg.min_partners}"
+            )
+
     def architecture(self, ppo: PPOConfig, task: TaskConfig) -> dict[str, Any]:
         return architecture(ppo, centralised_critic=True)
 
@@ -69,7 +82,10 @@ class PoolLearner(Algorithm):
 
     def generation(self, oracle: Oracle) -> GenerationReport:
         parent = self.population[-1] if self.population else None
-        trained = oracle.train(parent, partners=Uniform(tuple(oracle.zoo_members(pool_path(self.config.pool)))))
+        members = tuple(oracle.zoo_members(pool_path(self.config.pool)))
+        count = self.config.min_partners
+        partners = Uniform(members) if count >= oracle.num_partners else VariableCount((*members, LEARNER_COPY), count)
+        trained = oracle.train(parent, partners=partners)
         member = oracle.register(trained, [parent] if parent else [])
         self.population.append(member)
         return GenerationReport(

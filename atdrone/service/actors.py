@@ -85,7 +85,7 @@ class RolloutWorkerActor:
             job.seed,
             job.architecture,
             job.ppo,
-            partners=[self.policies.get(s) for s in job.partners],
+            partners=[None if s.kind == "learner" else self.policies.get(s) for s in job.partners],
             num_ctrl=job.num_ctrl,
             sampler=sampler,
             num_envs=job.num_envs,

@@ -39,7 +39,7 @@ from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Te
 from atdrone.registry import find_registry_actor, member_id
 from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor, run_updates
 from atdrone.service.experiment import ExperimentConfig, registry_name
-from atdrone.teams.partners import PartnerDistribution, describe
+from atdrone.teams.partners import LEARNER_COPY, PartnerDistribution, describe
 
 # streams of derive_seed(experiment seed, generation, STREAM, index)
 LEARNER_STREAM, EVAL_STREAM, RNG_STREAM = 0, 1, 2
@@ -143,6 +143,8 @@ class Coordinator:
         """How a worker builds a member's policy: a zoo member (``zoo1:greedy``) or a population checkpoint."""
         if member in self.zoo_specs:
             return self.zoo_specs[member]
+        if member == LEARNER_COPY:
+            return MemberSpec(name=member, kind="learner")
         return MemberSpec(name=member, kind="checkpoint", checkpoint=str(self.checkpoint_path(member)))
 
     def checkpoint_path(self, member: str) -> Path:

@@ -41,6 +41,34 @@ class Uniform:
         return rng.integers(len(self.members), size=(n, slots))
 
 
+LEARNER_COPY = "self"  # a partner slot flown by a copy of the training learner (its steps are not trained on)
+
+
+@dataclass(frozen=True)
+class VariableCount:
+    """Each episode draws how many partners it has, then who they are.
+
+    The count c is uniform in ``min_partners``..slots; c slots get members of the pool
+    (``members`` but the last), uniformly and independently; the others get the last
+    member, :data:`LEARNER_COPY` (the Match shuffles every episode's slots).
+    """
+
+    members: tuple[str, ...]
+    min_partners: int = 1
+
+    def __post_init__(self) -> None:
+        if len(self.members) < 2 or self.members[-1] != LEARNER_COPY:
+            raise ValueError(f"members must be a pool followed by {LEARNER_COPY!r}, got {self.members}")
+        if self.min_partners < 0:
+            raise ValueError(f"min_partners must be >= 0, got {self.min_partners}")
+
+    def draw(self, rng: np.random.Generator, n: int, slots: int) -> np.ndarray:
+        pool = len(self.members) - 1
+        counts = rng.integers(min(self.min_partners, slots), slots + 1, size=n)
+        picks = rng.integers(pool, size=(n, slots))
+        return np.where(np.arange(slots)[None] < counts[:, None], picks, pool)
+
+
 @dataclass(frozen=True)
 class Weighted:
     """Every slot drawn independently from ``members`` with probabilities ``probs``."""
@@ -114,6 +142,8 @@ def describe(dist: PartnerDistribution | None) -> dict[str, Any]:
     out: dict[str, Any] = {"kind": type(dist).__name__, "members": list(dist.members)}
     if isinstance(dist, Profiles):
         out["profiles"] = dist.names
+    if isinstance(dist, VariableCount):
+        out["min_partners"] = dist.min_partners
     if hasattr(dist, "probs"):
         out["probs"] = [float(p) for p in dist.probs]
     return out
