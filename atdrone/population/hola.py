@@ -29,9 +29,24 @@ Settings (the ``"hola"`` section of an experiment document):
   ``min_episodes`` episodes; while a node's preference is contested (its best team
   does not beat a rival by ``z`` standard errors of the difference) both teams play as
   many episodes again, up to ``max_episodes``.
-- ``eta_prior``: the prior count a of rho's eta, ``(in + a) / (degree + 2a)``; with a =
-  1 a member nobody prefers, among members of eta 0.5 of the same degree d, is drawn
-  ``(d / 2 + 1)`` times as often as each of them (3x for d = 4), never all the mass.
+- ``eta_prior`` and ``eta_centre``: rho's eta with a prior count a centred on c,
+  ``(in + 2 a c) / (degree + 2 a)``; c is the candidates' mean raw eta (``"mean"``,
+  the default: typical eta is about 1 / (n - 1), so a member with few hyperedges
+  shrinks towards a typical member) or 1/2 (``"half"``, Laplace's rule for a = 1).
+- ``rho``: ``"softmin"`` (the default: the appendix's mixed strategy, the learner's own
+  hyperedges as profiles, P proportional to exp(-(w - min w) / ``temperature``), in the
+  weight's units, 2 by default) or ``"reciprocal"`` (normalised 1 / eta). Chosen by
+  measurement: with one partner planted 20 points worse than four others, softmin gives
+  it 0.50 of the partner mass (2.5x uniform) in each of 20 seeded generations, the
+  reciprocal of eta 0.43 on average and 0.31 at worst, since a good member nobody
+  happened to prefer has eta 0 as well (tests/test_hola_signal.py).
+- ``replay``: whose contested preferences earn more episodes: ``"partners"`` (the
+  non-learner nodes', whose preferences order rho) or ``"all"``.
+- ``null_trials``: every generation also reports rho of i.i.d. random weights on the
+  same hyperedges (entropy mean and sd, largest rho; ``hypergraph.json``'s ``null``), so
+  a reader sees whether the min step found anything. Ties between equal weights are
+  broken by a permutation drawn from the generation's generator; a NaN weight or
+  standard error is an error.
 - ``max_hyperedges``: play a seeded uniform sample of this many hyperedges of G'_t
   when it has more (0: all of them).
 - ``population_size`` / ``retire``: off by default (0: the population grows, as in the
@@ -44,6 +59,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 import atdrone.population.hypergraph as hg
 from atdrone.config import ConfigError
@@ -61,6 +78,9 @@ from atdrone.teams.partners import profiles, slot_counts
 
 WEIGHTS = {"return": "REW", "SUC": "SUC"}  # weight name -> match metric
 STARTS = ("last", "scratch")
+CENTRES = ("mean", "half")  # eta's prior centred on the candidates' mean raw eta, or on 1/2 (Laplace)
+RHO_RULES = ("reciprocal", "softmin")
+REPLAYS = ("partners", "all")  # whose contested preferences get more episodes
 
 
 @dataclass(frozen=True)
@@ -79,6 +99,11 @@ class HolaConfig:
     max_hyperedges: int = 0
     population_size: int = 0
     retire: str = "oldest"
+    eta_centre: str = "mean"
+    rho: str = "softmin"
+    temperature: float = 2.0
+    replay: str = "partners"
+    null_trials: int = 200
 
 
 class Hola(Algorithm):
@@ -92,6 +117,8 @@ class Hola(Algorithm):
         self.eta: dict[str, float] = {}  # raw eta of the last G'_t
         self.rho: dict[str, float] = {}
         self.drawn: dict[str, int] = {}  # episodes each member was a partner in, last generation
+        self.null: dict[str, float] = {}  # rho of random weights on the same hyperedges (null_rho)
+        self._ties = 0  # the seed of this generation's tie-breaking permutation
 
     @classmethod
     def check_config(cls, cfg: Any, path: str) -> None:
@@ -107,6 +134,11 @@ class Hola(Algorithm):
             ("z", cfg.z >= 0, "must be >= 0"),
             ("max_hyperedges", cfg.max_hyperedges >= 0, "must be >= 0 (0: every hyperedge of G'_t)"),
             ("retire", cfg.retire in hg.RETIRE_RULES, f"must be one of {hg.RETIRE_RULES}"),
+            ("eta_centre", cfg.eta_centre in CENTRES, f"must be one of {CENTRES}"),
+            ("rho", cfg.rho in RHO_RULES, f"must be one of {RHO_RULES}"),
+            ("temperature", cfg.temperature > 0, "must be > 0"),
+            ("replay", cfg.replay in REPLAYS, f"must be one of {REPLAYS}"),
+            ("null_trials", cfg.null_trials >= 0, "must be >= 0 (0: no null baseline)"),
         ]
         for key, ok, message in checks:
             if not ok:
@@ -133,18 +165,7 @@ class Hola(Algorithm):
             return self._pi0(oracle)
         cfg = self.config
         others = [m for m in self.population if m not in self.learners]  # Pi_t minus N_t
-        # min step: G'_t, played until its preferences are resolved (or capped)
-        edges = hg.learner_hyperedges(self.learners, others, oracle.num_ctrl, oracle.num_partners)
-        if cfg.max_hyperedges and len(edges) > cfg.max_hyperedges:
-            keep = sorted(oracle.rng.choice(len(edges), size=cfg.max_hyperedges, replace=False).tolist())
-            edges = [edges[i] for i in keep]
-        played, rounds = self._play(oracle, edges)
-        stats = {w: self._stats(played, metric) for w, metric in WEIGHTS.items()}
-        weights = {team: w for team, (w, _) in stats[cfg.weight].items()}
-        self.eta = hg.preference_centrality(weights, nodes=self.population)
-        smoothed = hg.smoothed_centrality(weights, self.population, cfg.eta_prior)
-        self.rho = hg.uniform_distribution(others) if self.uniform else hg.partner_distribution(smoothed, others)
-        draws = hg.profile_distribution(self.rho, oracle.num_partners)
+        played, rounds, stats, smoothed, draws = self.min_step(oracle, others)
         # max step: best responses trained on profiles drawn from rho, per environment and episode
         learners, training = [], []
         for k in range(cfg.learners_per_generation):
@@ -160,6 +181,60 @@ class Hola(Algorithm):
         oracle.retire(removed)
         self.learners = learners
         return self._report(oracle, learners, training, played, removed, stats, smoothed, draws, rounds)
+
+    def min_step(
+        self, oracle: Oracle, others: list[str]
+    ) -> tuple[dict[Team, list[MatchResult]], int, dict[str, dict[Team, tuple[float, float]]], dict[str, float], dict]:
+        """G'_t played until its preferences are resolved (or capped), eta, rho and the profiles to draw.
+
+        Sets ``eta``, ``rho`` and ``null``; returns (played matches, rounds, statistics per
+        weight, smoothed eta, profile distribution).
+        """
+        cfg = self.config
+        # min step: G'_t, played until its preferences are resolved (or capped)
+        edges = hg.learner_hyperedges(self.learners, others, oracle.num_ctrl, oracle.num_partners)
+        if cfg.max_hyperedges and len(edges) > cfg.max_hyperedges:
+            keep = sorted(oracle.rng.choice(len(edges), size=cfg.max_hyperedges, replace=False).tolist())
+            edges = [edges[i] for i in keep]
+        played, rounds = self._play(oracle, edges)
+        stats = {w: self._stats(played, metric) for w, metric in WEIGHTS.items()}
+        weights = {team: w for team, (w, _) in stats[cfg.weight].items()}
+        tie_seed = int(oracle.rng.integers(2**32))  # ties broken by one permutation from the generation's rng
+        self._ties = tie_seed
+        ties = lambda: np.random.default_rng(tie_seed)  # the same permutation for every call
+        self.eta = hg.preference_centrality(weights, nodes=self.population, rng=ties())
+        smoothed = self._smoothed(weights, others, ties)
+        self.rho, draws = self._profiles(weights, others, oracle.num_partners, ties)
+        if cfg.null_trials:
+
+            def rho_of(w: dict[Team, float]) -> dict[str, float]:
+                return self._profiles(w, others, oracle.num_partners, ties)[0]
+
+            self.null = hg.null_rho(weights, rho_of, np.random.default_rng(tie_seed), cfg.null_trials)
+        return played, rounds, stats, smoothed, draws
+
+    def _smoothed(self, weights: dict[Team, float], others: list[str], ties: Any) -> dict[str, float]:
+        """eta with the prior count, centred as the config says (see the module docstring)."""
+        cfg = self.config
+        centre = hg.mean_centrality(weights, others, ties()) if cfg.eta_centre == "mean" else 0.5
+        return hg.smoothed_centrality(weights, self.population, cfg.eta_prior, centre, ties())
+
+    def _profiles(
+        self, weights: dict[Team, float], others: list[str], num_partners: int, ties: Any
+    ) -> tuple[dict[str, float], dict[Team, float]]:
+        """rho over Pi minus N_t and the partner profiles to draw: uniform ("w/o g"), the reciprocal of the
+        smoothed eta, or softmin over the learners' hyperedges (rho: each member's share of the slots)."""
+        cfg = self.config
+        if self.uniform or cfg.rho == "reciprocal":
+            rho = (
+                hg.uniform_distribution(others)
+                if self.uniform
+                else hg.partner_distribution(self._smoothed(weights, others, ties), others)
+            )
+            return rho, hg.profile_distribution(rho, num_partners)
+        draws = hg.softmin_profiles(weights, self.learners, cfg.temperature)
+        shares = hg.member_shares(draws)
+        return {m: shares.get(m, 0.0) / num_partners for m in others}, draws
 
     def _pi0(self, oracle: Oracle) -> GenerationReport:
         """Pi_0: pi0_seeds self-play runs, each frozen at pi0_levels skill levels; N_0: the first seeds' finals."""
@@ -190,7 +265,10 @@ class Hola(Algorithm):
                 episodes[result.team] += result.episodes
             rounds += 1
             stats = self._stats(played, WEIGHTS[cfg.weight])
-            contested = set().union(*hg.contested_preferences(stats, cfg.z).values())
+            judges = hg.contested_preferences(stats, cfg.z)
+            if cfg.replay == "partners":  # the learner's own preference decides nothing about rho's order
+                judges = {node: teams for node, teams in judges.items() if node not in self.learners}
+            contested = set().union(*judges.values())
             todo = [e for e in edges if hg.team_key(e) in contested and episodes[e] < cfg.max_episodes]
         return played, rounds
 
@@ -237,6 +315,7 @@ class Hola(Algorithm):
         weights = {team: w for team, (w, _) in stats[cfg.weight].items()}
         metrics = {
             "pop/rho_entropy": hg.distribution_entropy(self.rho),
+            **{f"pop/null_rho_{k}": v for k, v in self.null.items() if k != "trials"},
             "eval/hyperedges": float(len(played)),
             "eval/episodes": float(episodes),
             "eval/rounds": float(rounds),
@@ -260,10 +339,13 @@ class Hola(Algorithm):
                 for team, results in played.items()
             ],
             "weights": {"|".join(k): v for k, v in weights.items()},
-            "preference": {n: list(e) for n, e in hg.preference_hypergraph(weights).items()},
+            "preference": {
+                n: list(e) for n, e in hg.preference_hypergraph(weights, np.random.default_rng(self._ties)).items()
+            },
             "eta": dict(self.eta),
             "eta_smoothed": smoothed,
             "rho": dict(self.rho),
+            "null": dict(self.null),
             "profiles": {"|".join(sorted(p)): v for p, v in draws.items()},
             "member_shares": hg.member_shares(draws),
             "drawn_profiles": dict(sorted(drawn_profiles.items())),
@@ -286,7 +368,14 @@ class Hola(Algorithm):
 
     # ----------------------------------------------------------------- state
     def state(self) -> dict[str, Any]:
-        return {**super().state(), "learners": self.learners, "eta": self.eta, "rho": self.rho, "drawn": self.drawn}
+        return {
+            **super().state(),
+            "learners": self.learners,
+            "eta": self.eta,
+            "rho": self.rho,
+            "drawn": self.drawn,
+            "null": self.null,
+        }
 
     def load_state(self, state: Mapping[str, Any]) -> None:
         super().load_state(state)
@@ -294,6 +383,7 @@ class Hola(Algorithm):
         self.eta = dict(state.get("eta", {}))
         self.rho = dict(state.get("rho", {}))
         self.drawn = dict(state.get("drawn", {}))
+        self.null = dict(state.get("null", {}))
 
     @classmethod
     def figures(cls, report: GenerationReport, out_dir: Path) -> list[Path]:

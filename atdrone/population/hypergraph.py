@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 import pandas as pd
@@ -78,17 +78,29 @@ def _distinct(team: Team) -> frozenset[str]:
     return frozenset(team)
 
 
-def preference_hypergraph(weights: dict[Team, float]) -> dict[str, Team]:
+def check_finite(weights: dict[Team, float], what: str = "weight") -> None:
+    """ValueError naming the team when a weight is NaN or infinite: it would silently decide a preference."""
+    for team, value in weights.items():
+        if not math.isfinite(value):
+            raise ValueError(f"hyperedge {list(team)} has {what} {value!r}: preferences need finite weights")
+
+
+def preference_hypergraph(weights: dict[Team, float], rng: np.random.Generator | None = None) -> dict[str, Team]:
     """Each node's single outgoing hyperedge: the highest-weight team it belongs to.
 
-    Ties go to the lowest team_key, so the graph depends on the weights only. A team with
-    one distinct member (self-play: the member fills every slot) links the node to no one,
-    and carries no degree either (``|e| - 1 = 0``), so it is never a preference: a node whose
-    only teams are such teams gets no outgoing edge and is absent from the result. Keys are
-    node ids, sorted.
+    Ties go to the lowest team_key, so the graph depends on the weights only, unless
+    ``rng`` is given: then tied teams are ordered by a random permutation drawn from it
+    (the generation's generator), so no member wins ties by its name. A team with one
+    distinct member (self-play: the member fills every slot) links the node to no one,
+    and carries no degree either (``|e| - 1 = 0``), so it is never a preference: a node
+    whose only teams are such teams gets no outgoing edge and is absent from the result.
+    Keys are node ids, sorted. A NaN or infinite weight is a ValueError.
     """
+    check_finite(weights)
+    order = sorted(weights)
+    rank = dict(zip(order, rng.permutation(len(order)).tolist(), strict=True)) if rng is not None else {}
     preferred: dict[str, Team] = {}
-    for team in sorted(weights, key=lambda t: (-weights[t], t)):
+    for team in sorted(weights, key=lambda t: (-weights[t], rank.get(t, 0), t)):
         members = _distinct(team)
         if len(members) < 2:
             continue
@@ -123,7 +135,9 @@ def preference_in_degrees(preferred: dict[str, Team]) -> dict[str, int]:
     return dict(sorted(in_degree.items()))
 
 
-def preference_centrality(weights: dict[Team, float], nodes: Iterable[str] | None = None) -> dict[str, float]:
+def preference_centrality(
+    weights: dict[Team, float], nodes: Iterable[str] | None = None, rng: np.random.Generator | None = None
+) -> dict[str, float]:
     """eta(i) = in-degree of i in the preference hypergraph / degree of i in the hypergraph.
 
     eta is in [0, 1]: every j counted in i's in-degree is another member of a hyperedge e
@@ -134,15 +148,26 @@ def preference_centrality(weights: dict[Team, float], nodes: Iterable[str] | Non
     sorted.
     """
     degree = hypergraph_degrees(weights)
-    in_degree = preference_in_degrees(preference_hypergraph(weights))
+    in_degree = preference_in_degrees(preference_hypergraph(weights, rng))
     everyone = set(degree) | set(nodes or ())
     return {
         node: in_degree.get(node, 0) / degree[node] if degree.get(node, 0) > 0 else 0.0 for node in sorted(everyone)
     }
 
 
-def smoothed_centrality(weights: dict[Team, float], nodes: Iterable[str], prior: float) -> dict[str, float]:
-    """eta with a prior count: ``(in-degree + prior) / (degree + 2 prior)`` (Laplace's rule for prior = 1).
+def smoothed_centrality(
+    weights: dict[Team, float],
+    nodes: Iterable[str],
+    prior: float,
+    centre: float = 0.5,
+    rng: np.random.Generator | None = None,
+) -> dict[str, float]:
+    """eta with a prior count: ``(in-degree + 2 prior centre) / (degree + 2 prior)``.
+
+    With ``centre`` 1/2 that is ``(in-degree + prior) / (degree + 2 prior)``, Laplace's rule
+    for prior = 1; :func:`mean_centrality` gives the centre HOLA uses by default, the
+    candidates' mean raw eta, so a member with few hyperedges shrinks towards a typical
+    member, not towards 1/2 (typical eta is about 1 / (n - 1)).
 
     The min step needs 1 / eta, which the raw eta of a member nobody prefers (in-degree
     0) makes infinite. The prior counts ``prior`` virtual preferences out of ``2 prior``
@@ -155,10 +180,76 @@ def smoothed_centrality(weights: dict[Team, float], nodes: Iterable[str], prior:
     """
     if not prior > 0:
         raise ValueError(f"prior must be > 0, got {prior}")
+    if not 0 < centre <= 1:
+        raise ValueError(f"centre must be in (0, 1], got {centre}")
     degree = hypergraph_degrees(weights)
-    in_degree = preference_in_degrees(preference_hypergraph(weights))
+    in_degree = preference_in_degrees(preference_hypergraph(weights, rng))
     everyone = set(degree) | set(nodes)
-    return {n: (in_degree.get(n, 0) + prior) / (degree.get(n, 0) + 2 * prior) for n in sorted(everyone)}
+    return {n: (in_degree.get(n, 0) + 2 * prior * centre) / (degree.get(n, 0) + 2 * prior) for n in sorted(everyone)}
+
+
+def mean_centrality(
+    weights: dict[Team, float], candidates: Iterable[str], rng: np.random.Generator | None = None
+) -> float:
+    """The mean raw eta of the candidates that have a hyperedge (1/2 when none has any in-degree)."""
+    eta = preference_centrality(weights, rng=rng)
+    degree = hypergraph_degrees(weights)
+    values = [eta[c] for c in dict.fromkeys(candidates) if degree.get(c, 0) > 0]
+    mean = float(np.mean(values)) if values else 0.0
+    return mean if mean > 0 else 0.5
+
+
+def softmin_profiles(weights: dict[Team, float], learners: Sequence[str], temperature: float) -> dict[Team, float]:
+    """The appendix's mixed strategy: the learners' hyperedges as partner profiles, P proportional to
+    exp(-(w - min w) / temperature) (a softmin of the learners' outcomes: an entropy-regularised
+    minimiser), averaged over learners. Keys: the profiles (partners of each hyperedge, sorted)."""
+    if not temperature > 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    check_finite(weights)
+    out: dict[Team, float] = {}
+    for learner in dict.fromkeys(learners):
+        own = {t: w for t, w in weights.items() if learner in t}
+        if not own:
+            continue
+        low = min(own.values())
+        mass = {t: math.exp(-(w - low) / temperature) for t, w in own.items()}
+        total = math.fsum(mass.values())
+        for team, m in mass.items():
+            profile = tuple(x for x in team if x != learner)
+            out[profile] = out.get(profile, 0.0) + m / total
+    if not out:
+        raise ValueError(f"no hyperedge of the learners {list(learners)}")
+    total = math.fsum(out.values())
+    return {p: v / total for p, v in out.items()}
+
+
+def null_rho(
+    weights: dict[Team, float],
+    rho_of: Callable[[dict[Team, float]], dict[str, float]],
+    rng: np.random.Generator,
+    trials: int = 200,
+) -> dict[str, float]:
+    """What the min step gives with no signal: ``rho_of`` the measured weights permuted at random
+    over the same hyperedges (the same design and scale, no link between a team and its outcome).
+
+    Returns the mean and standard deviation over ``trials`` of rho's entropy, and the mean
+    of its largest value: the baseline a measured rho must differ from before it can be
+    said to have found a preference (at generation 1 the in-degrees are largely fixed by
+    the design, whatever the weights).
+    """
+    check_finite(weights)
+    keys, values = list(weights), np.array(list(weights.values()), dtype=np.float64)
+    entropies, largest = [], []
+    for _ in range(trials):
+        rho = rho_of(dict(zip(keys, rng.permutation(values).tolist(), strict=True)))
+        entropies.append(distribution_entropy(rho))
+        largest.append(max(rho.values()))
+    return {
+        "entropy": float(np.mean(entropies)),
+        "entropy_sd": float(np.std(entropies, ddof=1)) if trials > 1 else 0.0,
+        "max_rho": float(np.mean(largest)),
+        "trials": float(trials),
+    }
 
 
 def _unique(candidates: Iterable[str]) -> list[str]:
@@ -284,6 +375,8 @@ def contested_preferences(stats: dict[Team, tuple[float, float]], z: float) -> d
     value holds the preferred hyperedge and its contenders: the matches worth more
     episodes. Equal weights with zero error (e.g. SUC 0 against 0) are unresolved.
     """
+    check_finite({t: w for t, (w, _) in stats.items()})
+    check_finite({t: se for t, (_, se) in stats.items()}, "standard error")
     by_node: dict[str, list[Team]] = {}
     for team in stats:
         members = _distinct(team)
