@@ -112,7 +112,8 @@ CHANGES = {
 
 
 def test_every_ppo_field_is_listed():
-    assert set(CHANGES) == {f.name for f in dataclasses.fields(PPOConfig)}
+    # teammate_coef weighs a teammate model's decoder loss: test_teammate.py pins it on a NAHT-D update
+    assert set(CHANGES) | {"teammate_coef"} == {f.name for f in dataclasses.fields(PPOConfig)}
 
 
 @pytest.fixture(scope="module")

@@ -240,3 +240,17 @@ def test_a_slot_without_a_partner_is_flown_by_a_sampling_copy_of_the_learner():
     sampled = np.abs(learned[:, 0] - np.tanh(learned[:, 1])) > 1e-4
     assert sampled.mean() > 0.95  # the copy samples like the learners (a mean-playing copy: half would match)
     assert set(worker.drawn) == {"greedy|self"}
+
+
+def test_teammate_coef_weighs_the_decoder_loss_in_the_update():
+    def updated(coef: float, decoder: bool) -> torch.Tensor:
+        ppo = replace(TINY_PPO, teammate_coef=coef)
+        spec = LearnerSpec(ppo, num_e=2, num_p=4, seed=0, total_updates=2, architecture=_naht(decoder))
+        learner = Learner(spec)
+        worker = RolloutWorker("4p2e1o", 0, spec.model_architecture(), ppo, [GreedyPolicy()], num_ctrl=2)
+        worker.set_weights(learner.get_weights())
+        learner.update(worker.collect(16))
+        return torch.cat([p.flatten() for p in learner.get_weights().values()])
+
+    assert not torch.equal(updated(1.0, True), updated(0.1, True))
+    assert torch.equal(updated(1.0, False), updated(0.1, False))  # no decoder: nothing to weigh
