@@ -128,7 +128,7 @@ def test_cli_render_names_the_bad_field_of_a_task_file(tmp_path, capsys):
 
 
 def test_cli_demo_renders_every_task(tmp_path, capsys):
-    assert main(["demo", "--out-dir", str(tmp_path), "--max-steps", "3", "--frame-every", "3"]) == 0
+    assert main(["gallery", "--out-dir", str(tmp_path), "--max-steps", "3", "--frame-every", "3"]) == 0
     expected = [f"{t}.gif" for t in ("4p2e1o", "4p2e3o", "4p2e5o", "4p3e5o")]
     assert sorted(p.name for p in tmp_path.glob("*.gif")) == expected
     out = capsys.readouterr().out
