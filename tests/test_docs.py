@@ -5,6 +5,10 @@ in, MLflow in the folder) unless the line before it is a marker comment
 ``<!-- docs-test: KIND -->`` with KIND one of :data:`SKIP` (what docs/index.md
 documents). A ``json`` block must parse. A block without a language that holds commands
 is refused, so a command cannot hide from this test.
+
+After ``make demo``, ``ATDRONE_DOCS_DEMO=1 .venv/bin/python -m pytest tests/test_docs.py``
+also runs the ``demo`` blocks, in the repository root where the demo left its run
+(``runs/hola_quick``, ``mlflow.db``): what a new user types after the demo.
 """
 
 from __future__ import annotations
@@ -65,6 +69,7 @@ def blocks(page: Path) -> list[Block]:
 
 ALL = [b for page in PAGES for b in blocks(page)]
 RUNNABLE = [b for b in ALL if b.lang in RUN and b.marker is None]
+AFTER_DEMO = [b for b in ALL if b.lang in RUN and b.marker == "demo"]
 
 
 def test_the_pages_have_blocks_and_some_run() -> None:
@@ -110,3 +115,19 @@ def test_block_runs_as_written(block: Block, scratch: tuple[Path, dict[str, str]
         f"{block.name} failed ({done.returncode}):\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}"
     )
     assert "Traceback" not in done.stderr, f"{block.name}:\n{done.stderr[-3000:]}"
+
+
+@pytest.mark.skipif(not os.environ.get("ATDRONE_DOCS_DEMO"), reason="after make demo, with ATDRONE_DOCS_DEMO=1")
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("block", AFTER_DEMO, ids=lambda b: b.name)
+def test_block_runs_after_the_demo(block: Block, tmp_path: Path) -> None:
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    text = block.text
+    if text.startswith("mlflow ui"):  # a server: it must start and answer, then it is stopped
+        serve = text.splitlines()[0].split("#")[0].strip()
+        text = f"{serve} --port 5999 & pid=$!; sleep 20; curl -sf http://127.0.0.1:5999/health; kill $pid\n"
+    done = subprocess.run(["bash", "-euo", "pipefail", "-c", text], cwd=ROOT, env=env, capture_output=True, text=True)
+    output = f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    assert done.returncode == 0, f"{block.name} failed ({done.returncode}):\n{output}"
+    assert "Traceback" not in done.stderr and "Warning" not in done.stderr, f"{block.name}:\n{output}"
