@@ -233,10 +233,17 @@ def add_train(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+# Ray's "token authentication is enabled ... Set RAY_AUTH_MODE=disabled to opt out" on every local start: the
+# local Ray listens on 127.0.0.1 with the token on, and the advice to turn it off is not one to give a new user
+QUIET_LOGGERS = ("ray._private.authentication.authentication_token_setup",)
+
+
 def run_train(args: argparse.Namespace) -> int:
     import logging
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    for name in QUIET_LOGGERS:  # notices about the libraries' defaults, not about this run
+        logging.getLogger(name).setLevel(logging.ERROR)
     document = read_json(args.config)
     if not isinstance(document, dict):
         raise ConfigError(None, f"{args.config} must hold a JSON object (a train or experiment config)")
@@ -329,9 +336,9 @@ def _train_service(args: argparse.Namespace) -> int:
     )
     args.run_dir = Path(cfg.out_dir) / cfg.name
     summary = run_experiment(cfg, address=args.address, resume=args.resume, progress=not args.no_progress)
-    from atdrone.tracking import absolute_uri, tracking_uri, ui_hint
+    from atdrone.tracking import tracking_uri, ui_hint
 
-    print(format_summary(cfg, summary, absolute_uri(tracking_uri())))
+    print(format_summary(cfg, summary, tracking_uri()))
     print(ui_hint(cfg.experiment or cfg.name))
     return 0
 

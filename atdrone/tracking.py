@@ -21,8 +21,10 @@ log = logging.getLogger(__name__)
 
 
 def tracking_uri(uri: str | None = None) -> str:
-    """The tracking URI in force: the argument, MLFLOW_TRACKING_URI, or ./mlflow.db."""
-    return uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+    """The tracking URI in force: the argument, MLFLOW_TRACKING_URI, or ./mlflow.db; a relative sqlite file made
+    absolute (:func:`absolute_uri`), so what is printed names the store wherever it is read (a Ray job runs in a
+    temporary copy of the working directory)."""
+    return absolute_uri(uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI)
 
 
 def _flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -257,7 +259,7 @@ def ui_link(experiment: str, uri: str | None = None) -> str:
 
 def ui_hint(experiment: str, uri: str | None = None) -> str:
     """One line for the end of a command that logged: the UI link and how to start the UI on this store."""
-    store = absolute_uri(tracking_uri(uri))
+    store = tracking_uri(uri)
     return f"MLflow: {ui_link(experiment, uri)} (start the UI with: mlflow ui --backend-store-uri {store})"
 
 

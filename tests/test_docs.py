@@ -124,10 +124,39 @@ def test_block_runs_after_the_demo(block: Block, tmp_path: Path) -> None:
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     env.pop("MLFLOW_TRACKING_URI", None)
     text = block.text
-    if text.startswith("mlflow ui"):  # a server: it must start and answer, then it is stopped
-        serve = text.splitlines()[0].split("#")[0].strip()
-        text = f"{serve} --port 5999 & pid=$!; sleep 20; curl -sf http://127.0.0.1:5999/health; kill $pid\n"
+    if text.startswith("mlflow ui"):  # a server: it must start and answer on /health, then it is stopped
+        _serves([*text.splitlines()[0].split("#")[0].split(), "--port", "5999"], env)
+        return
     done = subprocess.run(["bash", "-euo", "pipefail", "-c", text], cwd=ROOT, env=env, capture_output=True, text=True)
     output = f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
     assert done.returncode == 0, f"{block.name} failed ({done.returncode}):\n{output}"
     assert "Traceback" not in done.stderr and "Warning" not in done.stderr, f"{block.name}:\n{output}"
+
+
+def _serves(command: list[str], env: dict[str, str]) -> None:
+    """Start ``command`` (a web server on port 5999) in its own process group, wait for /health, stop the group."""
+    import signal
+    import time
+    import urllib.request
+
+    server = subprocess.Popen(
+        command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    try:
+        deadline = time.monotonic() + 180
+        while True:
+            assert server.poll() is None, f"{' '.join(command)} exited with {server.returncode}"
+            try:
+                with urllib.request.urlopen("http://127.0.0.1:5999/health", timeout=5) as answer:
+                    assert answer.status == 200
+                    return
+            except OSError:
+                assert time.monotonic() < deadline, f"{' '.join(command)} did not answer within 180 s"
+                time.sleep(1)
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)
+            server.wait()

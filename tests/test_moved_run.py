@@ -19,8 +19,7 @@ TINY = {
     "updates_per_generation": 1,
     "num_workers": 2,
     "eval_episodes": 4,
-    "final_zoo": "zoo1",
-    "final_episodes": 4,
+    "final_zoo": "",
     "gif": False,
     "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
 }
