@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint install lock bench clean
+.PHONY: demo test lint docs install lock bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -33,7 +33,11 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check atdrone tests benchmarks jobs
 	$(BIN)/mypy
 
-test: lint
+# the docs/ site; --strict: a broken link, anchor or a page left out of the nav fails
+docs: $(STAMP)
+	$(BIN)/mkdocs build --strict --quiet
+
+test: lint docs
 	$(BIN)/python -m pytest -q
 
 # the quick HOLA-Drone V2 run on a local Ray, in runs/hola_quick (<= 10 min on 2 cores); run again, it
@@ -45,4 +49,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/env_throughput.py
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache site

@@ -6,7 +6,7 @@ new subcommand is one more pair and one more table row.
 
     atdrone render --task 4p2e5o --out run.gif [--seed 0] [--frame-every 2] [--png frame.png]
                    [--policy greedy|vicsek|PATH] [--zoo zoo1]
-    atdrone demo [--out-dir demo_out]
+    atdrone gallery [--out-dir gallery]
 
 ``--out`` is always an output file (a GIF, an export) and ``--out-dir`` an output folder.
     atdrone evaluate --policy greedy|vicsek|PATH --task 4p2e1o|all --zoo zoo1|all [--episodes 500]
@@ -28,6 +28,8 @@ from atdrone.config import TASK_NAMES, ConfigError, read_json
 from atdrone.errors import UserError
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
+EXIT_INTERRUPTED = 130  # Ctrl-C
+POLICY_HELP = "greedy, vicsek, a member id (hola-g3-0), models:/NAME@ALIAS, a checkpoint PATH or ZOO:MEMBER"
 
 
 @dataclass(frozen=True)
@@ -38,8 +40,15 @@ class Command:
     run: Callable[[argparse.Namespace], int]
 
 
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+
+
 def _positive_int(text: str) -> int:
-    value = int(text)
+    value = _integer(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
@@ -56,19 +65,45 @@ def _episodes(text: str) -> int:
 
 
 def _seed(text: str) -> int:
-    value = int(text)
+    value = _integer(text)
     if not 0 <= value < 2**32:
         raise argparse.ArgumentTypeError(f"must be between 0 and 2**32 - 1, got {value}")
     return value
 
 
+def _fps(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not 0 < value <= 100:
+        raise argparse.ArgumentTypeError(f"must be in (0, 100] frames per second, got {text}")
+    return value
+
+
+def _output_file(path: Path, suffixes: tuple[str, ...], flag: str = "--out") -> Path:
+    """``path`` if it names a file of one of ``suffixes`` in a folder that exists; UserError otherwise.
+
+    An output file is never written under another format's name, and a mistyped folder
+    is not created silently.
+    """
+    if path.suffix.lower() not in suffixes:
+        raise UserError(f"{flag} {path}: the file name must end in {' or '.join(suffixes)}")
+    if path.is_dir():
+        raise UserError(f"{flag} {path}: is a folder; give a file name")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise UserError(f"{flag} {path}: no folder {str(parent)!r} (create it first)")
+    return path
+
+
 def _add_episode_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=int, default=0, help="seed of the episode (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the episode (default 0)")
     p.add_argument("--frame-every", type=_positive_int, default=2, help="draw every k-th step into the GIF (default 2)")
     p.add_argument(
         "--max-steps", type=_positive_int, default=None, help="stop after this many steps (default: the task horizon)"
     )
-    p.add_argument("--fps", type=float, default=10.0, help="GIF frames per second (default 10)")
+    p.add_argument("--fps", type=_fps, default=10.0, help="GIF frames per second (default 10)")
 
 
 def _format_summary(summary: dict[str, Any]) -> str:
@@ -96,11 +131,15 @@ def add_render(subparsers: Any) -> argparse.ArgumentParser:
         "chase-the-nearest-evader policy); with --zoo the policy drives the task's learner slots and partners drawn "
         "from the zoo (drawn green) the others.",
     )
-    p.add_argument("--task", default="4p2e5o", help=f"task name ({', '.join(TASK_NAMES)}) or JSON path")
-    p.add_argument("--policy", default=None, help="greedy, vicsek or a checkpoint PATH (default: built-in chase)")
+    p.add_argument(
+        "--task",
+        default=None,
+        help=f"task name ({', '.join(TASK_NAMES)}) or JSON path (default: the policy's task, else 4p2e5o)",
+    )
+    p.add_argument("--policy", default=None, help=f"{POLICY_HELP} (default: built-in chase)")
     p.add_argument("--zoo", default=None, help="fill the partner slots from this zoo (zoo1, zoo2, zoo3 or a JSON path)")
-    p.add_argument("--out", type=Path, default=None, help="GIF path (default: <task>.gif)")
-    p.add_argument("--png", type=Path, default=None, help="also save the first frame as this PNG")
+    p.add_argument("--out", type=Path, default=None, help="GIF path, *.gif (default: <task>.gif)")
+    p.add_argument("--png", type=Path, default=None, help="also save the first frame as this PNG, *.png")
     _add_episode_args(p)
     return p
 
@@ -108,17 +147,19 @@ def add_render(subparsers: Any) -> argparse.ArgumentParser:
 def run_render(args: argparse.Namespace) -> int:
     from atdrone.config import load_task
     from atdrone.envs.render import save_gif, save_png
-    from atdrone.policies.zoo import PolicyError, load_zoo, policy_from_spec
+    from atdrone.policies.zoo import load_zoo
+    from atdrone.resolve import resolve
     from atdrone.teams.replay import record_episode
 
-    cfg = load_task(args.task)
+    if args.out is not None:
+        _output_file(args.out, (".gif",))
+    if args.png is not None:
+        _output_file(args.png, (".png",), "--png")
+    found = resolve(args.policy) if args.policy is not None else None
+    cfg = load_task(args.task or (found.task if found is not None and found.task else "4p2e5o"))
     zoo = load_zoo(args.zoo) if args.zoo is not None else None
-    try:
-        policy = policy_from_spec(args.policy) if args.policy is not None else None
-        partners = zoo.policies() if zoo is not None else None
-    except PolicyError as exc:
-        _error(args, exc)
-        return EXIT_USAGE
+    policy = found.policy() if found is not None else None
+    partners = zoo.policies() if zoo is not None else None
     frames, summary = record_episode(
         cfg, args.seed, policy=policy, partners=partners, max_steps=args.max_steps, frame_every=args.frame_every
     )
@@ -130,22 +171,23 @@ def run_render(args: argparse.Namespace) -> int:
     return 0
 
 
-# ------------------------------------------------------------------ demo
+# --------------------------------------------------------------- gallery
 DEMO_TASKS = ("4p2e1o", "4p2e3o", "4p2e5o", "4p3e5o")
 
 
-def add_demo(subparsers: Any) -> argparse.ArgumentParser:
+def add_gallery(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "demo",
-        help="render an episode of each of the four tasks",
-        description="Render one episode of each paper task to <out-dir>/<task>.gif and print a summary table.",
+        "gallery",
+        help="render an episode of each of the four tasks (the built-in chase policy)",
+        description="Render one episode of each paper task to <out-dir>/<task>.gif and print a summary table. "
+        "(`make demo` is something else: it trains a population.)",
     )
-    p.add_argument("--out-dir", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
+    p.add_argument("--out-dir", type=Path, default=Path("gallery"), help="output folder (default gallery)")
     _add_episode_args(p)
     return p
 
 
-def run_demo(args: argparse.Namespace) -> int:
+def run_gallery(args: argparse.Namespace) -> int:
     from atdrone.envs.render import save_gif
     from atdrone.teams.replay import record_episode
 
@@ -192,16 +234,73 @@ def add_train(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+# Ray's "token authentication is enabled ... Set RAY_AUTH_MODE=disabled to opt out" on every local start: the
+# local Ray listens on 127.0.0.1 with the token on, and the advice to turn it off is not one to give a new user
+QUIET_LOGGERS = ("ray._private.authentication.authentication_token_setup",)
+
+
 def run_train(args: argparse.Namespace) -> int:
     import logging
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    for name in QUIET_LOGGERS:  # notices about the libraries' defaults, not about this run
+        logging.getLogger(name).setLevel(logging.ERROR)
     document = read_json(args.config)
     if not isinstance(document, dict):
-        raise ConfigError("", f"{args.config} must hold a JSON object (a train or experiment config)")
-    if "algorithm" in document:
-        return _train_service(args)
-    return _train_local(args)
+        raise ConfigError(None, f"{args.config} must hold a JSON object (a train or experiment config)")
+    service = "algorithm" in document
+    try:
+        return _train_service(args) if service else _train_local(args)
+    except KeyboardInterrupt:
+        where = getattr(args, "run_dir", None)
+        if where is None:
+            raise
+        kept = _kept_service(where) if service else _kept_local(where)
+        again = f"atdrone train {args.config}" + "".join(f" {a}" for a in _same_run_flags(args))
+        if kept is None:
+            print(
+                f"atdrone train: interrupted before the first checkpoint: nothing was kept in {where}; "
+                f"start again with: {again}",
+                file=sys.stderr,
+            )
+        else:
+            print(f"atdrone train: interrupted; kept {kept} in {where}; resume with: {again} --resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _same_run_flags(args: argparse.Namespace) -> list[str]:
+    """The flags that pick the same run again (name, seed, out folder), for the resume hint."""
+    flags = []
+    for flag, value in (("--name", args.name), ("--seed", args.seed), ("--out-dir", args.out_dir)):
+        if value is not None:
+            flags.append(f"{flag} {value}")
+    return flags
+
+
+def _kept_local(run_dir: Path) -> str | None:
+    """What an interrupted local run left: its last checkpoint (env steps), or None when nothing was saved."""
+    if not (run_dir / "learner_state.safetensors").is_file() or not (run_dir / "last.pt").is_file():
+        return None
+    try:
+        from atdrone.models.checkpoint import read_header
+
+        steps = int(read_header(run_dir / "last.pt").get("step", 0))
+    except (UserError, OSError, ValueError):
+        return "the last checkpoint (last.pt)"
+    return f"the checkpoint at {steps:,} env steps (last.pt; the updates after it are played again)"
+
+
+def _kept_service(run_dir: Path) -> str | None:
+    """What an interrupted population run left: its completed generations, or None when none completed."""
+    import json
+
+    try:
+        done = int(json.loads((run_dir / "service_state.json").read_text())["coordinator"]["generation"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if done < 1:
+        return None
+    return f"{done} completed generation(s) (the registry, member checkpoints; the unfinished one is played again)"
 
 
 def _train_local(args: argparse.Namespace) -> int:
@@ -216,12 +315,16 @@ def _train_local(args: argparse.Namespace) -> int:
         out_dir=args.out_dir,
         device=args.device,
     )
+    args.run_dir = Path(cfg.out_dir) / cfg.name
     trainer = run_training(cfg, resume=args.resume, progress=not args.no_progress)
     last = trainer.history[-1] if trainer.history else {}
     evals = ", ".join(f"{k[5:]} {last[k]:.1f}" for k in ("eval/SUC", "eval/COL", "eval/AST", "eval/REW") if k in last)
     print(f"{cfg.name}: {trainer.env_steps} env steps; last evaluation: {evals or 'none'}")
     print(f"checkpoint: {trainer.run_dir / 'last.pt'}; curve: {trainer.run_dir / 'curve.png'}")
-    print(f"MLflow run {trainer.run_id} (browse: mlflow ui --backend-store-uri sqlite:///mlflow.db)")
+    from atdrone.tracking import ui_hint
+
+    print(f"MLflow run {trainer.run_id}")
+    print(ui_hint(cfg.experiment or cfg.name))
     return 0
 
 
@@ -232,10 +335,12 @@ def _train_service(args: argparse.Namespace) -> int:
     cfg = load_experiment(
         args.config, seed=args.seed, name=args.name, out_dir=args.out_dir, generations=args.generations
     )
+    args.run_dir = Path(cfg.out_dir) / cfg.name
     summary = run_experiment(cfg, address=args.address, resume=args.resume, progress=not args.no_progress)
-    from atdrone.tracking import tracking_uri
+    from atdrone.tracking import tracking_uri, ui_hint
 
     print(format_summary(cfg, summary, tracking_uri()))
+    print(ui_hint(cfg.experiment or cfg.name))
     return 0
 
 
@@ -272,7 +377,9 @@ def add_registry(subparsers: Any) -> argparse.ArgumentParser:
     q.add_argument("--status", default=None, help="only this status (active, retired, missing)")
     q.add_argument("--columns", default=None, help="comma-separated member fields or metric keys, e.g. id,zoo1/SUC")
     q.add_argument("--format", choices=formats, default="table", help="table (default), csv or json (nothing cut)")
-    query("show", "every field of one member, in full").add_argument("id", help="member id")
+    query("show", "every field of one member, in full").add_argument(
+        "id", metavar="MEMBER", help="a member id, a models:/ URI or a member's checkpoint file"
+    )
     q = query("crossplay", "the member x member matrix of a metric, averaged over matches")
     q.add_argument("--task", default=None, help="only matches on this task")
     q.add_argument("--metric", default="SUC", help="SUC (default), COL, AST or REW")
@@ -289,6 +396,8 @@ def run_registry(args: argparse.Namespace) -> int:
     """Answer one registry query; a refused one (RegistryError, a missing file) reaches :func:`main` as one line."""
     from atdrone.registry_view import answer
 
+    if args.registry_command == "export":
+        _output_file(args.out, (f".{args.format}",))
     print(answer(args, warn=lambda message: print(f"atdrone registry: warning: {message}", file=sys.stderr)))
     return 0
 
@@ -302,8 +411,12 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
         "from the zoo; print SUC / COL / AST / REW (mean ± std over seeds) as a table (rows tasks, columns zoos) and "
         "write <out>/<policy>_<task>_<zoo>.json (summary and per-seed metrics) and .csv (every episode).",
     )
-    p.add_argument("--policy", required=True, help="the learner: greedy, vicsek or a checkpoint PATH")
-    p.add_argument("--task", default="4p2e1o", help=f"task name ({', '.join(TASK_NAMES)}), JSON path, or all")
+    p.add_argument("--policy", required=True, help=f"the learner: {POLICY_HELP}")
+    p.add_argument(
+        "--task",
+        default=None,
+        help=f"task name ({', '.join(TASK_NAMES)}), JSON path, or all (default: the policy's task, else 4p2e1o)",
+    )
     p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
     p.add_argument(
         "--episodes", type=_episodes, default=500, help=f"episodes per seed and cell, <= {MAX_EPISODES:,} (default 500)"
@@ -318,36 +431,42 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from atdrone.config import load_task
-    from atdrone.policies.zoo import RULES, ZOO_NAMES, load_zoo, policy_from_spec
+    from atdrone.policies.zoo import ZOO_NAMES, load_zoo
+    from atdrone.resolve import resolve
     from atdrone.teams.evaluation import evaluate_grid, task_fit
     from atdrone.teams.reports import format_table, write_report
 
     if len(set(args.seeds)) != len(args.seeds):
-        raise ConfigError("--seeds", f"each seed once, got {args.seeds} (a repeated seed replays the same episodes)")
-    tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]
+        raise UserError(f"--seeds: each seed once, got {args.seeds} (a repeated seed replays the same episodes)")
+    found = resolve(args.policy)
+    task_arg = args.task or found.task or "4p2e1o"
+    tasks = [load_task(t) for t in (TASK_NAMES if task_arg == "all" else [task_arg])]
     zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
-    learner = policy_from_spec(args.policy)
+    learner = found.policy()
     for note in task_fit(learner, tasks):
         print(f"atdrone evaluate: warning: {note}", file=sys.stderr)
+    playable = [z for z in zoos if not z.missing]
+    if not playable:  # nothing to play: the user's zoo is incomplete, one line and status 2
+        missing = "; ".join(f"zoo {z.name} is missing {', '.join(z.missing)}" for z in zoos)
+        raise UserError(f"no zoo has all its members ({missing}); nothing to evaluate")
     for zoo in zoos:
         if zoo.missing:
             print(
                 f"atdrone evaluate: warning: zoo {zoo.name} is missing {', '.join(zoo.missing)}; its cells are skipped",
                 file=sys.stderr,
             )
-    playable = [z for z in zoos if not z.missing]
-    if not playable:
-        _error(args, "no zoo has all its members; nothing to evaluate")
-        return 1
-    total = len(tasks) * len(playable) * args.episodes * len(args.seeds)
-    with tqdm(total=total, unit="ep", desc="evaluate", file=sys.stderr, disable=args.no_progress) as bar:
-        cells = evaluate_grid(learner, tasks, zoos, args.episodes, args.seeds, on_progress=bar.update)
-    print(format_table(cells, args.policy, args.episodes, args.seeds))
-    label = args.policy if args.policy in RULES else Path(args.policy).stem
-    task_part = "all" if args.task == "all" else tasks[0].name
+    label = "".join(c if c.isalnum() or c in "._-" else "_" for c in found.label)
+    task_part = "all" if task_arg == "all" else tasks[0].name
     zoo_part = "all" if args.zoo == "all" else zoos[0].name
     stem = f"{label}_{task_part}_{zoo_part}"
-    json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
+    total = len(tasks) * len(playable) * args.episodes * len(args.seeds)
+    cells: list[Any] = []
+    with tqdm(total=total, unit="ep", desc="evaluate", file=sys.stderr, disable=args.no_progress) as bar:
+        for task in tasks:  # the report is rewritten after each cell: a long grid keeps what it has played
+            for zoo in zoos:
+                cells += evaluate_grid(learner, [task], [zoo], args.episodes, args.seeds, on_progress=bar.update)
+                json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
+    print(format_table(cells, args.policy, args.episodes, args.seeds))
     print(f"\nwrote {json_path} and {csv_path}")
     return 0
 
@@ -421,7 +540,7 @@ def run_deploy(args: argparse.Namespace) -> int:
 
 COMMANDS: dict[str, Command] = {
     "render": Command(add_render, run_render),
-    "demo": Command(add_demo, run_demo),
+    "gallery": Command(add_gallery, run_gallery),
     "train": Command(add_train, run_train),
     "registry": Command(add_registry, run_registry),
     "evaluate": Command(add_evaluate, run_evaluate),

@@ -35,9 +35,11 @@ MAX_SEED = 2**32 - 1  # numpy's and the evaluation's seed range
 class ConfigError(UserError, ValueError):
     """A configuration document is malformed; ``path`` names the offending field."""
 
-    def __init__(self, path: str, message: str) -> None:
-        self.path = path or "<root>"
-        super().__init__(f"{self.path}: {message}")
+    def __init__(self, path: str | None, message: str) -> None:
+        """``path`` names the field ("" for the document itself); None for an error about a file or a
+        command-line argument, whose message then stands alone (no field to name)."""
+        self.path = "<root>" if path is None or path == "" else path
+        super().__init__(message if path is None else f"{self.path}: {message}")
 
 
 def _positive(value: float) -> str | None:
@@ -343,6 +345,19 @@ def _validate_semantics(cfg: TaskConfig) -> None:
     if len(site.obstacles) > MAX_OBSTACLES:
         raise ConfigError("site.obstacles", f"at most {MAX_OBSTACLES} obstacles, got {len(site.obstacles):,}")
     w, h = site.boundary.width, site.boundary.height
+    side = min(w, h)
+    for key in ("collision_distance", "capture_range"):  # as wide as the arena: every episode ends at once
+        if getattr(task, key) >= side:
+            raise ConfigError(
+                f"task.{key}",
+                f"must be less than the arena's smaller side ({side:g} m of the {w:g} x {h:g} m arena), "
+                f"got {getattr(task, key):g}",
+            )
+    if 2 * task.safe_radius >= side:
+        raise ConfigError(
+            "task.safe_radius",
+            f"must be less than half the arena's smaller side ({side / 2:g} m), got {task.safe_radius:g}",
+        )
     for name, ob in site.obstacles.items():
         path = f"site.obstacles.{name}"
         if isinstance(ob, Box):
@@ -398,8 +413,10 @@ def read_document(name_or_path: str | Path, kind: str, names: tuple[str, ...] = 
     text = str(name_or_path)
     path = CONFIG_DIR / kind / f"{text}.json" if text in names else Path(text)
     if not path.is_file():
+        names = names or tuple(sorted(p.stem for p in (CONFIG_DIR / kind).glob("*.json")))
         known = f" (known: {', '.join(names)})" if names else ""
-        raise ConfigError("", f"no {kind[:-1]} named {text!r}{known} and no such file")
+        noun = kind.removesuffix("s")
+        raise ConfigError(None, f"no {noun} named {text!r}{known} and no such file")
     return read_json(path)
 
 
@@ -421,20 +438,20 @@ def read_json(path: str | Path) -> Any:
     path = Path(path)
     try:
         if path.stat().st_size > MAX_DOCUMENT_BYTES:
-            raise ConfigError("", f"{path} is over {MAX_DOCUMENT_BYTES // 2**20} MB: not a config document")
+            raise ConfigError(None, f"{path} is over {MAX_DOCUMENT_BYTES // 2**20} MB: not a config document")
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError("", f"{path} is not UTF-8 text: {exc.reason} at byte {exc.start}") from None
+        raise ConfigError(None, f"{path} is not UTF-8 text: {exc.reason} at byte {exc.start}") from None
     except IsADirectoryError:
-        raise ConfigError("", f"{path} is a directory, not a JSON file") from None
+        raise ConfigError(None, f"{path} is a directory, not a JSON file") from None
     except OSError as exc:
-        raise ConfigError("", f"cannot read {path}: {exc.strerror or exc}") from None
+        raise ConfigError(None, f"cannot read {path}: {exc.strerror or exc}") from None
     try:
         return json.loads(text, object_pairs_hook=_no_duplicates)
     except json.JSONDecodeError as exc:
-        raise ConfigError("", f"{path} is not valid JSON: {exc}") from None
+        raise ConfigError(None, f"{path} is not valid JSON: {exc}") from None
     except RecursionError:
-        raise ConfigError("", f"{path} is nested too deeply to be a config document") from None
+        raise ConfigError(None, f"{path} is nested too deeply to be a config document") from None
     except ConfigError as exc:
         raise ConfigError(exc.path, f"{exc.args[0].split(': ', 1)[1]} (in {path})") from None
 
@@ -444,7 +461,7 @@ def read_object(name_or_path: str | Path, kind: str, names: tuple[str, ...] = ()
     document = read_document(name_or_path, kind, names)
     if not isinstance(document, dict):
         got = _describe(document)
-        raise ConfigError("", f"{name_or_path} must hold one JSON object (a config), got {got}")
+        raise ConfigError(None, f"{name_or_path} must hold one JSON object (a config), got {got}")
     return document
 
 

@@ -108,6 +108,9 @@ class RegistryError(UserError, ValueError):
     """A request the registry refuses: a duplicate id, a bad field, a file that is not a registry."""
 
 
+RUN_RELATIVE = "./"  # a stored checkpoint path relative to the registry's folder
+
+
 def default_path() -> Path:
     """Where the registry lives unless told: ``$ATDRONE_REGISTRY``, else ``./registry.db``."""
     return Path(os.environ.get(ENV_VAR) or DEFAULT_PATH)
@@ -263,7 +266,23 @@ class Registry:
         keys = _row_keys(frame, table)
         for col in _JSON_COLUMNS[table]:
             frame[col] = [self._json(text, table, key, col) for key, text in zip(keys, frame[col], strict=True)]
+        if table == "members":
+            frame["checkpoint"] = [self._full_path(text) for text in frame["checkpoint"]]
         return frame
+
+    # Paths inside the registry's folder (the run directory) are stored relative to it, as
+    # "./members/x.pt", and read back under wherever the folder is now: a run directory can
+    # be moved, copied or mounted elsewhere. Other paths are kept as given.
+    def _stored_path(self, path: str | os.PathLike[str]) -> str:
+        folder, given = self.path.parent.resolve(), Path(path)
+        if given.is_absolute() and given.resolve().is_relative_to(folder):
+            return f"{RUN_RELATIVE}{given.resolve().relative_to(folder).as_posix()}"
+        return str(path)
+
+    def _full_path(self, text: Any) -> Any:
+        if isinstance(text, str) and text.startswith(RUN_RELATIVE):
+            return str(self.path.parent.resolve() / text.removeprefix(RUN_RELATIVE))
+        return text
 
     def _json(self, text: Any, table: str, key: str, column: str) -> Any:
         """One JSON cell decoded and checked for its type (list of ids, object, list of ints)."""
@@ -325,7 +344,7 @@ class Registry:
             "algorithm": algorithm,
             "generation": generation,
             "parents": _dumps(parent_ids),
-            "checkpoint": None if checkpoint is None else str(checkpoint),
+            "checkpoint": None if checkpoint is None else self._stored_path(checkpoint),
             "sha256": sha256,
             "task": task,
             "status": status,
@@ -397,7 +416,7 @@ class Registry:
                 if value is not None:
                     changes[key] = value
             if checkpoint is not None:
-                changes["checkpoint"] = str(checkpoint)
+                changes["checkpoint"] = self._stored_path(checkpoint)
             if changes:
                 assignments = ", ".join(f"{k} = ?" for k in changes)
                 conn.execute(f"UPDATE members SET {assignments} WHERE id = ?", [*changes.values(), member_id])

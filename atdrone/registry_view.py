@@ -28,10 +28,9 @@ from typing import Any
 
 import pandas as pd
 
-from atdrone.registry import DEFAULT_PATH, ENV_VAR, Registry, RegistryError
+from atdrone.registry import Registry, RegistryError
+from atdrone.resolve import MODEL_PREFIX, REGISTRY_GLOB, _dir, _none_found, find_member, locate, locate_one, resolve
 
-RUNS_DIR = Path("runs")
-REGISTRY_GLOB = "*/registry.db"
 FORMATS = ("table", "csv", "json")
 FIELDS = (
     "id",
@@ -53,45 +52,6 @@ _KEEP_WHOLE = frozenset({"id", "generation", "status"})  # never cut to fit the 
 _GAP = "  "
 
 Warn = Callable[[str], None]
-
-
-# ----------------------------------------------------------------- discovery
-def find_registries(runs_dir: Path) -> list[Path]:
-    """The registry files of the runs under ``runs_dir`` (``*/registry.db``), sorted."""
-    return sorted(p for p in runs_dir.glob(REGISTRY_GLOB) if p.is_file())
-
-
-def locate(db: Path | None, runs_dir: Path) -> list[Path]:
-    """The registries a query reads: ``db``, else ``$ATDRONE_REGISTRY``, else those found (maybe none)."""
-    if db is not None:
-        return [db]
-    if os.environ.get(ENV_VAR):
-        return [Path(os.environ[ENV_VAR])]
-    found = find_registries(runs_dir)
-    if not found and Path(DEFAULT_PATH).is_file():
-        found = [Path(DEFAULT_PATH)]
-    return found
-
-
-def locate_one(db: Path | None, runs_dir: Path) -> Path:
-    """The one registry a query about one member or matrix reads; RegistryError when none or several."""
-    paths = locate(db, runs_dir)
-    if not paths:
-        raise RegistryError(_none_found(runs_dir))
-    if len(paths) > 1:
-        raise RegistryError(f"several registries under {_dir(runs_dir)}: pass --db ({', '.join(map(str, paths))})")
-    return paths[0]
-
-
-def _none_found(runs_dir: Path) -> str:
-    return (
-        f"no registry found (none at {_dir(runs_dir)}{REGISTRY_GLOB}, no ./{DEFAULT_PATH}): pass --db FILE "
-        "or --runs-dir DIR; `atdrone registry runs` lists the registries found"
-    )
-
-
-def _dir(path: Path) -> str:
-    return str(path).rstrip("/") + "/"
 
 
 @contextmanager
@@ -348,8 +308,25 @@ def _runs(args: argparse.Namespace, warn: Warn) -> str:
 
 
 def _show(args: argparse.Namespace, warn: Warn) -> str:
-    with _open(locate_one(args.db, args.runs_dir)) as registry:
-        return format_member(_known(registry.member, args.id))
+    member, _ = _find(args)
+    return format_member(member)
+
+
+def _find(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
+    """The member ``args.id`` names and its registry: an id in any registry found, or a models:/ URI or a
+    checkpoint file that leads to a member (:func:`atdrone.resolve.resolve`)."""
+    if not (args.id.startswith(MODEL_PREFIX) or Path(args.id).is_file()):
+        return find_member(args.id, args.db, args.runs_dir)
+    from atdrone.policies.base import PolicyError
+
+    try:
+        found = resolve(args.id, db=args.db, runs_dir=args.runs_dir)
+    except PolicyError as exc:
+        raise RegistryError(str(exc)) from None
+    if found.member is None or found.registry is None:
+        where = ", ".join(map(str, locate(args.db, args.runs_dir))) or "no registry found"
+        raise RegistryError(f"{args.id!r} is a {found.kind} that no registry lists as a member ({where})")
+    return found.member, found.registry
 
 
 def _crossplay(args: argparse.Namespace, warn: Warn) -> str:
@@ -362,8 +339,9 @@ def _crossplay(args: argparse.Namespace, warn: Warn) -> str:
 
 
 def _lineage(args: argparse.Namespace, warn: Warn) -> str:
-    with _open(locate_one(args.db, args.runs_dir)) as registry:
-        frame = _known(registry.lineage, args.id)
+    member, path = _find(args)
+    with _open(path) as registry:
+        frame = _known(registry.lineage, member["id"])
     with _pandas_display():
         return frame.to_string(index=False)
 

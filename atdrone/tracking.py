@@ -21,8 +21,10 @@ log = logging.getLogger(__name__)
 
 
 def tracking_uri(uri: str | None = None) -> str:
-    """The tracking URI in force: the argument, MLFLOW_TRACKING_URI, or ./mlflow.db."""
-    return uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+    """The tracking URI in force: the argument, MLFLOW_TRACKING_URI, or ./mlflow.db; a relative sqlite file made
+    absolute (:func:`absolute_uri`), so what is printed names the store wherever it is read (a Ray job runs in a
+    temporary copy of the working directory)."""
+    return absolute_uri(uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI)
 
 
 def _flatten(params: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -234,3 +236,35 @@ def model_checkpoint(uri: str, tracking: str | None = None, dst: str | Path | No
     except Exception as exc:  # a version whose files were deleted or never uploaded
         raise KeyError(f"registered model {uri!r}: cannot fetch {version.source}: {exc}") from None
     return str(local)
+
+
+UI_ADDRESS = "http://127.0.0.1:5000"  # where `mlflow ui` serves by default
+
+
+def ui_link(experiment: str, uri: str | None = None) -> str:
+    """The MLflow UI address of ``experiment`` in the model-training view.
+
+    MLflow 3's UI keeps a workflow type per browser (GenAI by default, so a new browser
+    shows "Traces 0"); the ``workflowType=machine_learning`` parameter opens the runs
+    table whatever the browser saw before. The experiment's tag (:data:`EXPERIMENT_KIND`)
+    says the same for MLflow's own guess.
+    """
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    import mlflow
+
+    found = mlflow.MlflowClient(tracking_uri=tracking_uri(uri)).get_experiment_by_name(experiment)
+    page = f"#/experiments/{found.experiment_id}" if found is not None else "#/experiments"
+    return f"{UI_ADDRESS}/{page}?workflowType=machine_learning"
+
+
+def ui_hint(experiment: str, uri: str | None = None) -> str:
+    """One line for the end of a command that logged: the UI link and how to start the UI on this store."""
+    store = tracking_uri(uri)
+    return f"MLflow: {ui_link(experiment, uri)} (start the UI with: mlflow ui --backend-store-uri {store})"
+
+
+def absolute_uri(uri: str) -> str:
+    """A sqlite URI with its file made absolute (what a Ray job's temporary working folder must not swallow)."""
+    if not uri.startswith("sqlite:///") or uri.startswith("sqlite:////"):
+        return uri
+    return f"sqlite:///{Path(uri.removeprefix('sqlite:///')).resolve()}"

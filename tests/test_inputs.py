@@ -201,10 +201,11 @@ def test_a_best_response_zoo_with_a_missing_checkpoint_is_refused_when_loaded(tm
 def test_evaluate_with_a_zoo_missing_a_checkpoint_skips_it_and_says_so(tmp_path, capsys):
     missing = _missing_zoo(tmp_path)
     argv = ["evaluate", "--policy", "greedy", "--episodes", "2", "--out-dir", str(tmp_path / "o"), "--no-progress"]
-    assert main([*argv, "--zoo", missing]) == 1  # nothing left to evaluate
+    assert main([*argv, "--zoo", missing]) == 2  # nothing left to evaluate: the user's zoo, one line
     err = capsys.readouterr().err
-    assert "warning: zoo broken is missing gone; its cells are skipped" in err
-    assert "error: no zoo has all its members; nothing to evaluate" in err
+    assert (
+        err == "atdrone evaluate: error: no zoo has all its members (zoo broken is missing gone); nothing to evaluate\n"
+    )
     with pytest.raises(ZooError, match=r"zoo 'broken' is incomplete: 'gone' needs nowhere/gone\.pt"):
         load_zoo(missing).policies()
 

@@ -35,6 +35,16 @@ def test_the_crossplay_heatmap_is_written(tmp_path):
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_the_crossplay_colour_scale_spans_the_values_present():
+    values = np.array([[2.0, 7.0], [np.nan, 4.5]])
+    table = pd.DataFrame(values, index=["a", "b"], columns=["a", "b"])
+    image = crossplay_figure(table).axes[0].images[0]
+    assert image.norm.vmin == 2.0 and image.norm.vmax == 7.0  # not 0-100: 2 and 7 are the scale's two ends
+    assert image.norm(4.5) == pytest.approx(0.5)
+    flat = crossplay_figure(pd.DataFrame([[5.0]], index=["a"], columns=["a"])).axes[0].images[0]
+    assert (flat.norm.vmin, flat.norm.vmax) == (4.5, 5.5)
+
+
 def test_the_hypergraph_shows_each_preference_as_an_arrow_and_a_key_for_eta():
     weights = {"a|b|l": 40.0, "a|c|l": 30.0, "b|c|l": 20.0}
     preference = {"a": ["b", "l"], "b": ["a", "l"], "c": ["a", "l"]}
@@ -47,6 +57,11 @@ def test_the_hypergraph_shows_each_preference_as_an_arrow_and_a_key_for_eta():
     assert bar_ax.get_ylabel().startswith("eta")
     labels = {t.get_text() for t in ax.texts}
     assert {"a\neta 0.50", "c\neta 0.00", "l\n(no eta yet)"} <= labels
+    # with rho and the generation: each member's share of the partner draws, and which generation it is
+    fig = hypergraph_figure(weights, preference, eta, rho={"a": 0.2, "b": 0.3, "c": 0.5}, generation=3)
+    ax = fig.axes[0]
+    assert "c\neta 0.00\nrho 0.50" in {t.get_text() for t in ax.texts}
+    assert ax.get_title().startswith("generation 3: preference hypergraph")
 
 
 def test_the_showcase_is_a_whole_episode_with_zoo_partners_and_a_caption():

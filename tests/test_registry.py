@@ -658,14 +658,21 @@ def test_without_db_list_reads_every_registry_and_the_others_need_one(
     assert main(["registry", "list"]) == 0
     rows = [line.split()[:2] for line in capsys.readouterr().out.splitlines()[1:]]
     assert [run for _, run in rows] == ["hola_quick"] * 3 + ["sp_base"] * 2
-    for argv in (["show", "sp-g0-0"], ["crossplay"], ["lineage", "sp-g1-0"], ["export", "--out", "m.csv"]):
+    for argv in (["crossplay"], ["export", "--out", "m.csv"]):
         assert main(["registry", *argv]) == 2
         assert capsys.readouterr().err == (
             f"atdrone registry: error: several registries under runs/: pass --db ({hola.relative_to(in_tmp)}, "
             f"{sp.relative_to(in_tmp)})\n"
         )
+    # a member id is looked up in every registry found: the one that holds it answers
+    assert main(["registry", "show", "sp-g0-0"]) == 0
+    assert "algorithm: sp" in capsys.readouterr().out
+    assert main(["registry", "lineage", "sp-g1-0"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].split()[0] == "sp-g1-0"
     assert main(["registry", "show", "sp-g0-0", "--db", str(sp)]) == 0
     assert "algorithm: sp" in capsys.readouterr().out
+    assert main(["registry", "show", "sp-g0-0", "--db", str(hola)]) == 2
+    assert capsys.readouterr().err == f"atdrone registry: error: no member 'sp-g0-0' in the registry at {hola}\n"
     assert not (in_tmp / "m.csv").exists()
 
 

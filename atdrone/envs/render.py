@@ -42,7 +42,9 @@ class FrameRenderer:
     :meth:`draw` replaces only the drones, rings, trails and labels.
     """
 
-    def __init__(self, core: BatchedPursuit, env_index: int = 0, partner_slots: Sequence[int] = ()) -> None:
+    def __init__(
+        self, core: BatchedPursuit, env_index: int = 0, partner_slots: Sequence[int] = (), member: str | None = None
+    ) -> None:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
         from matplotlib.patches import Circle, Rectangle
@@ -57,7 +59,7 @@ class FrameRenderer:
         pad = 0.15
         w, h = geo.width + 2 * pad, geo.height + 2 * pad
         scale = 6.4 / h  # inches per metre: about 512 px tall at FIGURE_DPI
-        header = 0.66  # inches of text above the arena: a title of up to two lines, then the status line
+        header = 0.9  # inches above the arena: a title of up to two lines, the status line, the legend
         total = h * scale + header
         self.figure = Figure(figsize=(w * scale, total), dpi=FIGURE_DPI)
         self.canvas = FigureCanvasAgg(self.figure)
@@ -81,12 +83,37 @@ class FrameRenderer:
         ax.hlines(np.arange(0.5, geo.height, 0.5), 0, geo.width, color=GRID_COLOR, linewidth=0.6, zorder=0.5)
         self.floor = floor  # dynamic artists are clipped to the arena
         self.ax = ax
+        self.legend = self._add_legend(h * scale / total, bool(partners), member)
         self.title = self.figure.text(
             0.03, 1.0 - 0.05 / total, "", fontsize=10, weight="bold", va="top", linespacing=1.1
         )
         self.status = self.figure.text(0.03, 1.0 - 0.3 / total, "", fontsize=8, va="top", family="monospace")
         self._title_source: str | None = None
         self._dynamic: list[Any] = []
+
+    def _add_legend(self, arena_top: float, team: bool, member: str | None) -> Any:
+        """One row just above the arena: whose drones are which colour (the member's, the partners'), evaders."""
+        from matplotlib.lines import Line2D
+
+        def dot(color: str, label: str, marker: str = "o") -> Line2D:
+            return Line2D([], [], linestyle="none", marker=marker, markersize=6, color=color, label=label)
+
+        flown = member or "pursuers"
+        handles = [dot(PURSUER_COLOR, f"{flown} (learners)" if team else flown)]
+        if team:
+            handles.append(dot(PARTNER_COLOR, "zoo partners"))
+        handles += [dot(EVADER_COLOR, "evader"), dot("black", "caught", "x")]
+        return self.figure.legend(
+            handles=handles,
+            loc="lower left",
+            bbox_to_anchor=(0.01, arena_top),
+            ncol=len(handles),
+            fontsize=7.5,
+            frameon=False,
+            handletextpad=0.2,
+            columnspacing=0.9,
+            borderaxespad=0.1,
+        )
 
     def _set_title(self, title: str) -> None:
         """Show ``title`` on one line at 8.5-10 pt if it fits the frame's width, else on two lines at 7-10 pt;
@@ -199,8 +226,8 @@ class FrameRenderer:
         t = int(s.t[k])
         self._set_title(title if title is not None else cfg.name)
         self.status.set_text(
-            f"t = {t} / {cfg.task.task_horizon}    captured {int(captured.sum())}/{core.num_e}"
-            f"    return {float(s.ep_return[k]):+.1f}"
+            f"step {t} / {cfg.task.task_horizon} ({t / cfg.task.fps:.1f} s)    caught {int(captured.sum())}/"
+            f"{core.num_e}    return {float(s.ep_return[k]):+.1f}    grid 0.5 m"
         )
         self.canvas.draw()
         return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()

@@ -41,8 +41,10 @@ def crossplay_figure(table: pd.DataFrame, title: str = "cross-play SUC", metric:
     """A member x partner heatmap of a cross-play matrix (rows: the member, columns: its partner; NaN blank).
 
     Axis labels, a colour bar labelled with the metric, cell values while legible, and a
-    title wrapped to the figure's width. Cells are 0.5 in a side, smaller past 18 members
-    so the heatmap stays within 9 in; tick labels keep 9 pt up to 30 members (6 pt at 50).
+    title wrapped to the figure's width. The colour scale spans the values present
+    (:func:`colour_range`), so a matrix of 2-7 % is not all one dark colour. Cells are
+    0.5 in a side, smaller past 18 members so the heatmap stays within 9 in; tick labels
+    keep 9 pt up to 30 members (6 pt at 50).
     """
     plt = _pyplot()
     n_rows, n_cols = table.shape
@@ -54,7 +56,8 @@ def crossplay_figure(table: pd.DataFrame, title: str = "cross-play SUC", metric:
     fig, ax = plt.subplots(figsize=(width, height), dpi=100, layout="constrained")
     values = table.to_numpy(dtype=float)
     percent = metric in ("SUC", "COL")
-    im = ax.imshow(values, cmap="viridis", vmin=0 if percent else None, vmax=100 if percent else None, aspect="auto")
+    low, high = colour_range(values)
+    im = ax.imshow(values, cmap="viridis", vmin=low, vmax=high, aspect="auto")
     ax.set_xticks(range(n_cols), [str(c) for c in table.columns], rotation=55, ha="right", fontsize=tick)
     ax.set_yticks(range(n_rows), [str(i) for i in table.index], fontsize=tick)
     ax.set_xlabel("partner", fontsize=10)
@@ -64,6 +67,15 @@ def crossplay_figure(table: pd.DataFrame, title: str = "cross-play SUC", metric:
     bar.set_label(f"{metric} (%)" if percent else metric, fontsize=10)
     ax.set_title(_wrap(title, width, points=10), fontsize=10)
     return fig
+
+
+def colour_range(values: np.ndarray) -> tuple[float, float]:
+    """The colour scale's ends: the smallest and largest finite value (widened to 1 unit when they are equal)."""
+    finite = values[np.isfinite(values)]
+    if not finite.size:
+        return 0.0, 1.0
+    low, high = float(finite.min()), float(finite.max())
+    return (low - 0.5, high + 0.5) if high - low < 1e-9 else (low, high)
 
 
 def _annotate(ax: Any, image: Any, values: np.ndarray, fontsize: float) -> None:
@@ -88,12 +100,20 @@ def _wrap(title: str, width_in: float, points: float = 9.0) -> str:
 
 
 # ------------------------------------------------------------------ hypergraph
-def hypergraph_figure(weights: dict[str, float], preference: dict[str, list[str]], eta: dict[str, float]) -> Any:
+def hypergraph_figure(
+    weights: dict[str, float],
+    preference: dict[str, list[str]],
+    eta: dict[str, float],
+    rho: dict[str, float] | None = None,
+    generation: int | None = None,
+) -> Any:
     """Members on a circle coloured by eta, with an arrow from each member to every co-member of its preferred team.
 
     weights: team ("a|b|c") -> weight (drawn as light grey hyperedges); preference:
     member -> its preferred team. Arrows (networkx) stop at the node borders; a colour bar
-    is the key for eta (preference centrality); members without eta are white.
+    is the key for eta (preference centrality); members without eta are white. With
+    ``rho`` each label also gives the member's share of the partner draws; with
+    ``generation`` the title names it.
     """
     import networkx as nx
 
@@ -130,6 +150,8 @@ def hypergraph_figure(weights: dict[str, float], preference: dict[str, list[str]
     for n in nodes:
         x, y = pos[n]
         label = f"{n}\neta {eta[n]:.2f}" if n in eta else f"{n}\n(no eta yet)"
+        if rho is not None and n in rho:
+            label += f"\nrho {rho[n]:.2f}"
         ax.text(1.28 * x, 1.28 * y, label, ha="center", va="center", fontsize=7)
     mappable = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0.0, 1.0))
     bar = fig.colorbar(mappable, ax=ax, shrink=0.7)
@@ -138,12 +160,18 @@ def hypergraph_figure(weights: dict[str, float], preference: dict[str, list[str]
     ax.set_ylim(-1.6, 1.6)
     ax.set_aspect("equal")
     ax.set_axis_off()
-    ax.set_title("preference hypergraph: an arrow from each member to its preferred team's members", fontsize=9)
+    when = f"generation {generation}: " if generation is not None else ""
+    ax.set_title(f"{when}preference hypergraph: an arrow from each member to its preferred team's members", fontsize=9)
     return fig
 
 
 def draw_hypergraph(
-    weights: dict[str, float], preference: dict[str, list[str]], eta: dict[str, float], path: Path
+    weights: dict[str, float],
+    preference: dict[str, list[str]],
+    eta: dict[str, float],
+    path: Path,
+    rho: dict[str, float] | None = None,
+    generation: int | None = None,
 ) -> Path:
     """Save :func:`hypergraph_figure` as a PNG."""
-    return save_figure(hypergraph_figure(weights, preference, eta), path)
+    return save_figure(hypergraph_figure(weights, preference, eta, rho, generation), path)

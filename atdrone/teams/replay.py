@@ -9,6 +9,7 @@ episode is played first (:func:`play_episode` keeps every state) and drawn after
 from __future__ import annotations
 
 import os
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -93,16 +94,20 @@ def frame_steps(steps: int, frame_every: int) -> list[int]:
 
 
 def draw_episode(
-    episode: Episode, frame_every: int = 1, trails: bool = True, title: str | None = None
+    episode: Episode, frame_every: int = 1, trails: bool = True, title: str | None = None, member: str | None = None
 ) -> list[np.ndarray]:
-    """The frames of ``episode`` at :func:`frame_steps`; ``title`` on each (default: task, seed, partners)."""
+    """The frames of ``episode`` at :func:`frame_steps`; ``title`` on each (default: task, seed, partners).
+
+    The legend names ``member`` for the drones it flies (the learner slots, or every
+    pursuer without partners) and, in a team, the zoo partners.
+    """
     steps = frame_steps(len(episode.states) - 1, frame_every)
     if title is None:
         title = f"{episode.summary['task']}  seed {episode.summary['seed']}"
         if "team" in episode.summary:
             title += f"  partners: {', '.join(episode.summary['team']['partners'])}"
     track = np.stack([s.pos[0] for s in episode.states])
-    renderer = FrameRenderer(episode.core, 0, partner_slots=episode.partner_slots)
+    renderer = FrameRenderer(episode.core, 0, partner_slots=episode.partner_slots, member=member)
     try:
         return [
             renderer.draw(episode.states[i], title=title, trails=track[: i + 1] if trails and i else None)
@@ -138,7 +143,10 @@ def record_episode(
     """
     frame_steps(0, frame_every)  # a bad frame_every fails before the episode is played
     episode = play_episode(task, seed, policy, max_steps, partners)
-    return draw_episode(episode, frame_every, trails, title), episode.summary
+    member = member_name(policy) if policy is not None else "chase nearest"
+    if title is None:
+        title = caption(member, episode.summary)
+    return draw_episode(episode, frame_every, trails, title, member), episode.summary
 
 
 def _actor(
@@ -162,17 +170,20 @@ def _actor(
 def representative_episode(
     task: TaskConfig | str, policy: Steer | DronePolicy, partners: Partners | None, seed: int = 0, tries: int = 8
 ) -> Episode:
-    """The episode that shows ``policy`` best: seeds ``seed, seed + 1, ...`` (up to ``tries``) are each played
-    whole, and the first that captures every evader is kept, else the longest (the earliest of equals)."""
-    best: Episode | None = None
-    for s in range(seed, seed + max(1, tries)):
-        episode = play_episode(task, s, policy, partners=partners)
-        if episode.summary["outcome"] == "captured":
-            return episode
-        if best is None or episode.summary["steps"] > best.summary["steps"]:
-            best = episode
-    assert best is not None
-    return best
+    """An episode that shows how ``policy`` usually does, not a lucky seed.
+
+    Seeds ``seed, seed + 1, ...`` (``tries`` of them) are each played whole; the outcome
+    most of them ended with is kept (a tie goes to the earlier seed's outcome), and of
+    those episodes the one of median length (the lower median; the earlier seed of
+    equals). ``summary["typical"]`` says how many of the seeds ended that way.
+    """
+    episodes = [play_episode(task, s, policy, partners=partners) for s in range(seed, seed + max(1, tries))]
+    counts = Counter(e.summary["outcome"] for e in episodes)
+    usual = max(counts, key=lambda outcome: counts[outcome])  # Counter keeps first-seen order: ties go earlier
+    alike = sorted((e for e in episodes if e.summary["outcome"] == usual), key=lambda e: e.summary["steps"])
+    chosen = alike[(len(alike) - 1) // 2]
+    chosen.summary["typical"] = f"{counts[usual]} of {len(episodes)} seeds ended {usual}"
+    return chosen
 
 
 def member_name(policy: Steer | DronePolicy) -> str:
@@ -182,13 +193,15 @@ def member_name(policy: Steer | DronePolicy) -> str:
 
 def caption(member: str, summary: dict[str, Any]) -> str:
     """``"<member> + <partners>: <outcome> in <steps> steps (<caught>/<evaders> caught), seed <seed>"``
-    (``"<member> alone: ..."`` without partners)."""
+    (``"<member> alone: ..."`` without partners), then ``"; <k> of <n> seeds ended <outcome>"`` when the
+    episode was picked as the typical one (:func:`representative_episode`)."""
     partners = summary.get("team", {}).get("partners", [])
     who = f"{member} + {', '.join(partners)}" if partners else f"{member} alone"
-    return (
+    text = (
         f"{who}: {summary['outcome']} in {summary['steps']} steps "
         f"({summary['captured']}/{summary['num_e']} caught), seed {summary['seed']}"
     )
+    return f"{text}; {summary['typical']}" if summary.get("typical") else text
 
 
 def showcase(
@@ -209,7 +222,7 @@ def showcase(
     zoo = load_zoo(partners) if isinstance(partners, str) else partners
     episode = representative_episode(task, policy, zoo, seed, tries)
     summary = {**episode.summary, "caption": caption(member_name(policy), episode.summary)}
-    return draw_episode(episode, frame_every, title=summary["caption"]), summary
+    return draw_episode(episode, frame_every, title=summary["caption"], member=member_name(policy)), summary
 
 
 def showcase_gif(

@@ -1,0 +1,267 @@
+"""Which policy a name means: the one answer for every command that takes a policy.
+
+A name is tried as, in this order:
+
+1. a rule drone: ``greedy``, ``vicsek``;
+2. a registered MLflow model: ``models:/NAME@ALIAS`` or ``models:/NAME/VERSION`` (its
+   checkpoint is downloaded from the tracking store, and the registry member with the
+   same checkpoint digest is found when a registry has it);
+3. a checkpoint file (a path that exists);
+4. a member id of a population registry (``hola-g3-0``): ``--db`` when given, else every
+   registry under the runs folder (``runs/*/registry.db``);
+5. a zoo member: ``ZOO:MEMBER`` (``zoo2:sp_high``) or a member name of the shipped zoos.
+
+:func:`resolve` returns a :class:`Resolved` (what the name was found as, its checkpoint
+file, the registry member when there is one); :meth:`Resolved.policy` loads it. A name
+that matches nothing raises :class:`PolicyNotFound`, one line that lists every reading
+tried and why it failed. ``atdrone evaluate``, ``render`` and ``registry show`` call it;
+so can the deploy job (:func:`resolve_checkpoint`).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from atdrone.config import ConfigError
+from atdrone.policies.base import Policy, PolicyError
+from atdrone.policies.zoo import RULES, ZOO_NAMES, MemberSpec, build_policy, checkpoint_path, load_checkpoint, load_zoo
+from atdrone.registry import DEFAULT_PATH, ENV_VAR, Registry, RegistryError
+
+__all__ = ["PolicyNotFound", "Resolved", "resolve", "resolve_checkpoint", "resolve_policy"]
+
+MODEL_PREFIX = "models:/"
+REGISTRY_GLOB = "*/registry.db"
+
+
+class PolicyNotFound(PolicyError):
+    """No reading of a policy name matched; the message lists what was tried."""
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """What a policy name was found as.
+
+    ``kind`` is one of rule, model, checkpoint, member, zoo; ``checkpoint`` is the file
+    behind it (None for a rule drone); ``member`` the registry row when the name led to
+    one (a member id, or a model whose version names its member), with ``registry`` the
+    file it came from; ``task`` the task it was trained on when known.
+    """
+
+    name: str
+    kind: str
+    label: str
+    checkpoint: Path | None = None
+    member: dict[str, Any] | None = None
+    registry: Path | None = None
+    task: str | None = None
+    zoo_member: MemberSpec | None = field(default=None, repr=False)
+
+    def policy(self) -> Policy:
+        """The policy, loaded (a checkpoint's digest checked); PolicyError when it cannot be."""
+        if self.kind == "rule":
+            policy: Policy = RULES[self.name]()
+        elif self.zoo_member is not None:
+            policy = build_policy(self.zoo_member)
+        elif self.checkpoint is None:
+            raise PolicyError(f"member {self.label!r} of {self.registry} has no checkpoint")
+        else:
+            policy = load_checkpoint(self.checkpoint)
+        policy.name = self.label
+        return policy
+
+
+def resolve(
+    name: str | Path, *, db: Path | None = None, runs_dir: Path = Path("runs"), tracking_uri: str | None = None
+) -> Resolved:
+    """The policy ``name`` means (see the module docstring); PolicyNotFound listing what was tried."""
+    text = str(name).strip()
+    if not text:
+        raise PolicyNotFound("no policy given: name a rule (greedy, vicsek), a member id, a models:/ URI or a file")
+    tried: list[str] = []
+    for attempt in (_rule, _model, _file, _member, _zoo):
+        found = attempt(text, db, runs_dir, tracking_uri, tried)
+        if found is not None:
+            return found
+    raise PolicyNotFound(f"no policy {text!r}; tried as " + "; ".join(tried))
+
+
+def resolve_policy(name: str | Path, **where: Any) -> Policy:
+    """The loaded policy ``name`` means: :func:`resolve` then :meth:`Resolved.policy`."""
+    return resolve(name, **where).policy()
+
+
+def resolve_checkpoint(name: str | Path, **where: Any) -> Path:
+    """The checkpoint file behind ``name`` (what a deploy config's member needs); PolicyError for a rule drone."""
+    found = resolve(name, **where)
+    if found.checkpoint is None:
+        raise PolicyError(f"{found.label!r} is a {found.kind} drone, not a trained policy with a checkpoint")
+    return found.checkpoint
+
+
+# ----------------------------------------------------------------- registries
+def find_registries(runs_dir: Path) -> list[Path]:
+    """The registry files of the runs under ``runs_dir`` (``*/registry.db``), sorted."""
+    return sorted(p for p in runs_dir.glob(REGISTRY_GLOB) if p.is_file())
+
+
+def locate(db: Path | None, runs_dir: Path) -> list[Path]:
+    """The registries a query reads: ``db``, else ``$ATDRONE_REGISTRY``, else those found (maybe none)."""
+    if db is not None:
+        return [db]
+    if os.environ.get(ENV_VAR):
+        return [Path(os.environ[ENV_VAR])]
+    found = find_registries(runs_dir)
+    if not found and Path(DEFAULT_PATH).is_file():
+        found = [Path(DEFAULT_PATH)]
+    return found
+
+
+def locate_one(db: Path | None, runs_dir: Path) -> Path:
+    """The one registry a query about one member or matrix reads; RegistryError when none or several."""
+    paths = locate(db, runs_dir)
+    if not paths:
+        raise RegistryError(_none_found(runs_dir))
+    if len(paths) > 1:
+        raise RegistryError(f"several registries under {_dir(runs_dir)}: pass --db ({', '.join(map(str, paths))})")
+    return paths[0]
+
+
+def _none_found(runs_dir: Path) -> str:
+    return (
+        f"no registry found (none at {_dir(runs_dir)}{REGISTRY_GLOB}, no ./{DEFAULT_PATH}): pass --db FILE "
+        "or --runs-dir DIR; `atdrone registry runs` lists the registries found"
+    )
+
+
+def _dir(path: Path) -> str:
+    return str(path).rstrip("/") + "/"
+
+
+# ------------------------------------------------------------------ readings
+def _rule(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:
+    if text in RULES:
+        return Resolved(text, "rule", text)
+    tried.append(f"a rule ({', '.join(RULES)})")
+    return None
+
+
+def _model(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:
+    if not text.startswith(MODEL_PREFIX):
+        tried.append("a registered model (models:/NAME@ALIAS or models:/NAME/VERSION)")
+        return None
+    from atdrone.tracking import model_checkpoint
+
+    try:
+        path = Path(model_checkpoint(text, tracking))
+    except KeyError as exc:  # the model, its alias or its file is missing: nothing else can match a models:/ URI
+        raise PolicyNotFound(f"no policy {text!r}: {exc.args[0] if exc.args else exc}") from None
+    header = _header(path)
+    member, registry = _member_by_sha256(header.get("sha256"), db, runs_dir)
+    label = member["id"] if member else text
+    return Resolved(text, "model", label, path, member, registry, header.get("task"))
+
+
+def _file(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:
+    path = Path(text).expanduser()
+    if path.is_file():
+        header = _header(path)
+        member, registry = _member_by_sha256(header.get("sha256"), db, runs_dir)
+        label = member["id"] if member else path.stem
+        return Resolved(text, "checkpoint", label, path, member, registry, header.get("task"))
+    if path.is_dir():  # a path that exists is what the user meant: nothing else to try
+        raise PolicyNotFound(f"{text!r} is a directory, not a checkpoint file")
+    tried.append("a checkpoint file (none there)")
+    return None
+
+
+def _member(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:
+    member, registry, searched = _find_member(text, db, runs_dir)
+    if member is None or registry is None:
+        tried.append(f"a member id (not in {searched})")
+        return None
+    checkpoint = Path(member["checkpoint"]) if member.get("checkpoint") else None
+    return Resolved(text, "member", text, checkpoint, member, registry, member.get("task"))
+
+
+def _zoo(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:
+    zoo_name, sep, member_name = text.partition(":")
+    zoos = [zoo_name] if sep else list(ZOO_NAMES)
+    wanted = member_name if sep else text
+    known = []
+    for z in zoos:
+        try:
+            zoo = load_zoo(z)
+        except ConfigError:
+            tried.append(f"a zoo member (no zoo {z!r}; known: {', '.join(ZOO_NAMES)})")
+            return None
+        for spec in zoo.spec.members:
+            if spec.name == wanted:
+                checkpoint = checkpoint_path(spec) if spec.kind == "checkpoint" else None
+                return Resolved(text, "zoo", spec.name, checkpoint, zoo_member=spec)
+        known.append(f"{zoo.name}: {', '.join(zoo.names)}")
+    tried.append(f"a zoo member ({'; '.join(known)})")
+    return None
+
+
+# ------------------------------------------------------------------- helpers
+def find_member(member_id: str, db: Path | None = None, runs_dir: Path = Path("runs")) -> tuple[dict[str, Any], Path]:
+    """The registry row of ``member_id`` and the registry file holding it; RegistryError naming where it looked."""
+    member, registry, searched = _find_member(member_id, db, runs_dir)
+    if member is None or registry is None:
+        raise RegistryError(f"no member {member_id!r} in {searched}")
+    return member, registry
+
+
+def _find_member(member_id: str, db: Path | None, runs_dir: Path) -> tuple[dict[str, Any] | None, Path | None, str]:
+    """The member, its registry and (when not found) where it was looked for; several matches are refused."""
+    paths = locate(db, runs_dir)
+    if not paths:
+        return None, None, f"any registry (none under {_dir(runs_dir)}{REGISTRY_GLOB}; pass --db FILE)"
+    hits: list[tuple[dict[str, Any], Path]] = []
+    for path in paths:
+        try:
+            with Registry(path, create=False) as registry:
+                hits.append((registry.member(member_id), path))
+        except KeyError:
+            continue
+        except (RegistryError, OSError):  # a damaged registry beside good ones does not hide their members
+            if len(paths) == 1:
+                raise
+            continue
+    if len(hits) > 1:
+        raise PolicyNotFound(
+            f"member {member_id!r} is in several registries ({', '.join(str(p) for _, p in hits)}): pass --db"
+        )
+    if hits:
+        return hits[0][0], hits[0][1], ""
+    return None, None, f"the registry at {paths[0]}" if len(paths) == 1 else ", ".join(map(str, paths))
+
+
+def _member_by_sha256(sha256: Any, db: Path | None, runs_dir: Path) -> tuple[dict[str, Any] | None, Path | None]:
+    """The registry member whose checkpoint has this digest (a registered model's member), if any registry has it."""
+    if not sha256:
+        return None, None
+    for path in locate(db, runs_dir):
+        try:
+            with Registry(path, create=False) as registry:
+                frame = registry.members()
+        except (RegistryError, OSError):
+            continue
+        rows = frame[frame["sha256"] == sha256]
+        if len(rows):
+            with Registry(path, create=False) as registry:
+                return registry.member(str(rows["id"].iloc[-1])), path
+    return None, None
+
+
+def _header(path: Path) -> dict[str, Any]:
+    """A checkpoint's header ({} when it cannot be read: loading it later reports the cause)."""
+    try:
+        from atdrone.models.checkpoint import read_header
+
+        return read_header(path)
+    except Exception:
+        return {}
