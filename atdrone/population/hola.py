@@ -393,7 +393,9 @@ class Hola(Algorithm):
         from atdrone.population.plots import draw_hypergraph
 
         path = out_dir / "hypergraph.png"
-        draw_hypergraph(graph["weights"], graph["preference"], graph["eta"], path)
+        draw_hypergraph(
+            graph["weights"], graph["preference"], graph["eta"], path, rho=graph["rho"], generation=report.generation
+        )
         return [path]
 
 
