@@ -16,6 +16,7 @@ Bad input exits with status 2 and a one-line error.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -36,7 +37,12 @@ def _positive_int(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
-    p.add_argument("--policy", required=True, help="the learner: greedy, vicsek or a checkpoint PATH")
+    p.add_argument(
+        "--policy",
+        required=True,
+        help="the learner: a rule (greedy, vicsek), a registry member id, models:/NAME@alias, a checkpoint PATH "
+        "or a zoo member",
+    )
     p.add_argument("--task", default="4p2e1o", help="task name (4p2e1o, 4p2e3o, 4p2e5o, 4p3e5o), JSON path, or all")
     p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
     p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
@@ -53,14 +59,16 @@ def _fail(message: object) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.config import TASK_NAMES, ConfigError, load_task
-    from atdrone.policies.zoo import RULES, ZOO_NAMES, PolicyError, load_zoo, policy_from_spec
+    from atdrone.policies.zoo import ZOO_NAMES, PolicyError, load_zoo
+    from atdrone.resolve import resolve
     from atdrone.teams.evaluation import evaluate_grid
     from atdrone.teams.reports import format_table, write_report
 
     try:
         tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]
         zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
-        learner = policy_from_spec(args.policy)
+        found = resolve(args.policy)  # a rule, member id, models:/ URI, checkpoint file or zoo member
+        learner = found.policy()
     except (ConfigError, PolicyError) as exc:
         return _fail(exc)
     for zoo in zoos:
@@ -70,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"no zoo has all its members ({', '.join(z.name for z in zoos)}); nothing to evaluate")
     cells = evaluate_grid(learner, tasks, zoos, args.episodes, args.seeds)
     print(format_table(cells, args.policy, args.episodes, args.seeds))
-    label = args.policy if args.policy in RULES else Path(args.policy).stem
+    label = re.sub(r"[^A-Za-z0-9._-]+", "_", Path(found.label).stem if found.kind == "checkpoint" else found.label)
     stem = f"{label}_{'all' if args.task == 'all' else tasks[0].name}_{'all' if args.zoo == 'all' else zoos[0].name}"
     try:
         json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
