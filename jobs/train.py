@@ -61,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.config import ConfigError, read_document
+    from atdrone.errors import UserError
     from atdrone.service.driver import format_summary, run_experiment
     from atdrone.service.experiment import load_experiment
 
@@ -85,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{PROG}: {cfg.name} ({cfg.algorithm} on {cfg.task}, {cfg.generations} generations) on {where}", flush=True)
     try:
         summary = run_experiment(cfg, address=args.address, resume=args.resume, tracking_uri=args.tracking_uri)
-    except FileExistsError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
+    except UserError as exc:  # a run that exists, a damaged state file, a cluster that cannot place it, ...
+        print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
         return EXIT_USAGE
     from atdrone.tracking import tracking_uri
 

@@ -350,3 +350,106 @@ def test_the_coordinator_reports_what_a_generation_is_doing(local_ray, tmp_path)
     assert {"train: learner 2, update 2/3", "train: learner 2, update 3/3"} & set(seen), seen
     assert "evaluate: 2 matches, 8 episodes (0 matches before)" in seen, seen
     assert "zoo: 2 member(s) on zoo1, 4 episodes each" in seen, seen
+
+
+# ------------------------------------------------------------------ edges: names, signals, fsync, bugs
+def test_an_experiment_name_the_mlflow_filters_cannot_hold_is_refused_when_loaded(tmp_path):
+    """The experiment name becomes the MLflow experiment and model name (and goes into filter strings): it is
+    checked with the run name's rule when the config is loaded, not after every generation has trained."""
+    from atdrone.config import ConfigError
+
+    for bad in ("o'brien run", 'say "hi"', "a/b"):
+        with pytest.raises(ConfigError, match=r"^experiment: .* is not a run name"):
+            load_experiment(_service(tmp_path, "fine", experiment=bad))
+    assert load_experiment(_service(tmp_path, "fine", experiment="obrien-run.2")).experiment == "obrien-run.2"
+
+
+def test_sigterm_ends_the_runs_killed_like_ctrl_c(tmp_path):
+    """`ray job stop` sends SIGTERM: inside run_experiment it raises KeyboardInterrupt, so the parent and the
+    nested run end KILLED (not left RUNNING), and the handler is restored afterwards."""
+    from atdrone.service.driver import _sigterm_as_interrupt
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    tracker = Tracker(uri)
+    before = signal.getsignal(signal.SIGTERM)
+    ids = []
+    with (
+        pytest.raises(KeyboardInterrupt, match="SIGTERM"),
+        _sigterm_as_interrupt(),
+        tracker.run("term", "parent") as parent,
+        tracker.run("term", "child", nested=True) as child,
+    ):
+        ids += [parent, child]
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises in this frame long before
+    assert signal.getsignal(signal.SIGTERM) == before
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    assert [client.get_run(i).info.status for i in ids] == ["KILLED", "KILLED"]
+
+
+def test_atomic_writes_fsync_the_directory_after_the_rename(tmp_path, monkeypatch):
+    """The rename is made durable: after os.replace the target's directory is opened and fsynced."""
+    import stat
+
+    from atdrone import fileio
+
+    events: list[tuple[str, object]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        mode = os.fstat(fd).st_mode
+        events.append(("fsync", "dir" if stat.S_ISDIR(mode) else "file"))
+        real_fsync(fd)
+
+    def replace(src, dst) -> None:  # type: ignore[no-untyped-def]
+        events.append(("replace", Path(dst).name))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(fileio.os, "fsync", fsync)
+    monkeypatch.setattr(fileio.os, "replace", replace)
+    fileio.atomic_write_text(tmp_path / "sub" / "state.json", "{}")
+    assert events == [("fsync", "file"), ("replace", "state.json"), ("fsync", "dir")]
+    assert (tmp_path / "sub" / "state.json").read_text() == "{}"
+
+
+def test_a_key_error_inside_the_deploy_is_reported_as_a_bug_not_a_user_error(tmp_path, monkeypatch, capsys):
+    """The deploy turns a missing member or model into its own DeployError; any other KeyError is a bug, so
+    the CLI names it an internal error and --debug shows its traceback."""
+    import atdrone.deploy.job as job
+
+    def broken(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise KeyError("cf7")
+
+    monkeypatch.setattr(job, "run_deploy", broken)
+    assert main(["deploy", "sim_4p2e1o", "--out-dir", str(tmp_path)]) == 1
+    assert "internal error: KeyError: cf7" in capsys.readouterr().err
+    with pytest.raises(KeyError, match="cf7"):
+        main(["--debug", "deploy", "sim_4p2e1o", "--out-dir", str(tmp_path)])
+
+
+def test_a_best_member_registered_again_by_a_resumed_run_is_the_same_version(tmp_path):
+    """register_checkpoint finds the run's version of the member before making one: a resume that registers
+    again gets the same version; another member of the run, or another run, gets a new one."""
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    path = _checkpoint(tmp_path / "m.pt", seed=0)
+    with tracker.run("again", "run") as run_id:
+        first = tracker.register_checkpoint(path, "atdrone-again", 40.0, {"member": "m"})
+    with tracker.run("again", "run", run_id=run_id):
+        assert tracker.register_checkpoint(path, "atdrone-again", 40.0, {"member": "m"}) == first == "1"
+        assert tracker.register_checkpoint(path, "atdrone-again", 30.0, {"member": "n"}) == "2"
+    with tracker.run("again", "other"):
+        assert tracker.register_checkpoint(path, "atdrone-again", 20.0, {"member": "m"}) == "3"
+    versions = tracker.mlflow.MlflowClient().search_model_versions("name = 'atdrone-again'")
+    assert len(versions) == 3
+
+
+def test_metrics_logged_once_per_step_add_no_second_point(tmp_path):
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    with tracker.run("once", "parent") as run_id:
+        tracker.log_metrics({"gen/a": 1.0}, step=0, run_id=run_id, once=True)
+        tracker.log_metrics({"gen/a": 1.0, "gen/b": 2.0}, step=0, run_id=run_id, once=True)  # b is new at 0
+        tracker.log_metrics({"gen/a": 3.0}, step=1, once=True)
+        tracker.log_metrics({"gen/a": 3.0}, step=1, once=True)
+    client = tracker.mlflow.MlflowClient()
+    assert [(m.step, m.value) for m in client.get_metric_history(run_id, "gen/a")] == [(0, 1.0), (1, 3.0)]
+    assert [(m.step, m.value) for m in client.get_metric_history(run_id, "gen/b")] == [(0, 2.0)]

@@ -10,10 +10,16 @@ per learner. ``resume=True`` continues from the last completed generation.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
+import signal
+import threading
 import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -114,7 +120,37 @@ def run_experiment(
     (:data:`RESUME_MAY_CHANGE` aside) is refused. ``stop_after``: stop once this many
     generations are complete (for tests of resume).
     """
+    with _sigterm_as_interrupt():
+        return _run(cfg, address, resume, tracking_uri, progress, num_cpus, stop_after)
 
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (``ray job stop``, a scheduler's stop) raises KeyboardInterrupt, as Ctrl-C does, so the run's
+    MLflow records end KILLED and its actors are released; the previous handler comes back afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run(
+    cfg: ExperimentConfig,
+    address: str | None,
+    resume: bool,
+    tracking_uri: str | None,
+    progress: bool,
+    num_cpus: int | None,
+    stop_after: int | None,
+) -> dict[str, Any]:
     import ray
 
     from atdrone.population import ALGORITHMS
@@ -129,7 +165,7 @@ def run_experiment(
             refuse_existing(run_dir)
         saved = read_json(state_path, "service state")
         check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
-        done = _completed(run_dir, saved, cfg)
+        done = _completed(run_dir, saved, cfg, tracking_uri)
         if done is not None:
             return done
     elif resume and (run_dir / "config.json").exists():
@@ -153,10 +189,18 @@ def run_experiment(
 SUMMARY_FILE = "summary.json"
 
 
-def _completed(run_dir: Path, saved: dict[str, Any], cfg: ExperimentConfig) -> dict[str, Any] | None:
-    """The summary of a run that already finished all ``cfg.generations`` (resumed again: nothing to do)."""
+def _completed(
+    run_dir: Path, saved: dict[str, Any], cfg: ExperimentConfig, tracking_uri: str | None
+) -> dict[str, Any] | None:
+    """The summary of a run that already finished all ``cfg.generations`` (resumed again: nothing to do but
+    end its MLflow parent run, when a kill came after the summary and before the run's end)."""
     if saved.get("coordinator", {}).get("generation", 0) < cfg.generations or not (run_dir / SUMMARY_FILE).exists():
         return None
+    if saved.get("mlflow_run_id"):
+        from atdrone.tracking import Tracker
+
+        if Tracker(tracking_uri).end_run_if_running(saved["mlflow_run_id"]):
+            log.info("ended the finished run's MLflow run %s, left RUNNING by a kill", saved["mlflow_run_id"])
     summary = read_json(run_dir / SUMMARY_FILE, "run summary")
     summary["population"] = pd.read_csv(run_dir / "population.csv")
     summary.update({"run_dir": str(run_dir), "mlflow_run_id": saved.get("mlflow_run_id"), "reports": []})
@@ -183,24 +227,29 @@ def _generations(
     tracker = Tracker(tracking_uri)
     reports: list[GenerationReport] = []
     experiment = cfg.experiment or cfg.name
-    run_tag = {"atdrone.run": cfg.name}
+    start = saved.get("coordinator", {}).get("generation", 0)
+    tags = run_tags(cfg, run_dir)
+    attempt = {**tags, "atdrone.attempt": uuid.uuid4().hex}  # this driver's nested runs
     name = f"{cfg.name}-{cfg.algorithm}"
-    with tracker.run(experiment, name, run_id=saved.get("mlflow_run_id"), tags=run_tag) as run_id:
-        killed = tracker.end_stale_runs(experiment, run_tag, keep=run_id)  # a dead attempt's nested runs
-        if killed:
-            log.info("ended %d MLflow runs of an interrupted attempt as KILLED", len(killed))
+    with tracker.run(experiment, name, run_id=saved.get("mlflow_run_id"), tags=tags) as run_id:
+        # what a dead attempt logged of generations it never saved: they are trained and logged again
+        forgotten = tracker.forget_runs(experiment, tags, "atdrone.generation", saved.get("logged", start), run_id)
+        killed = tracker.end_stale_runs(experiment, tags, keep=run_id)  # nested runs of an older layout
+        if forgotten or killed:
+            log.info("removed %d, ended %d MLflow runs of an interrupted attempt", len(forgotten), len(killed))
         if "mlflow_run_id" not in saved:  # from now on a rerun without --resume is refused
-            _write_json(state_path, {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id})
+            state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": start}
+            _write_json(state_path, state)
         tracker.log_params({"experiment": cfg.to_dict()})
         tracker.set_tags({"atdrone.algorithm": cfg.algorithm, "atdrone.task": cfg.task})
         tracker.log_artifact(run_dir / "config.json")
-        start = saved.get("coordinator", {}).get("generation", 0)
         for g in range(start, cfg.generations):
             t0 = time.perf_counter()
             report = _await_generation(coordinator, cfg.name, g, progress)
             reports.append(report)
-            _log_generation(tracker, report, run_dir, registry, cfg, run_id)
-            state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id}
+            _log_generation(tracker, report, run_dir, registry, cfg, run_id, attempt)
+            # the generation is saved and logged ("logged": MLflow holds generations 0 .. logged - 1)
+            state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": g + 1}
             _write_json(state_path, state)
             if progress:
                 learners = ", ".join(report.learners)
@@ -256,19 +305,34 @@ def _release(coordinator: Any, registry: Any, name: str, timeout_s: float = 30.0
         time.sleep(0.1)
 
 
+def run_tags(cfg: ExperimentConfig, run_dir: Path) -> dict[str, str]:
+    """The MLflow tags of a run's records: its name, and a key of its run directory (two runs of one name in two
+    out dirs are two runs)."""
+    key = hashlib.sha256(str(run_dir.resolve()).encode()).hexdigest()[:16]
+    return {"atdrone.run": cfg.name, "atdrone.run_dir": key}
+
+
 def _log_generation(
-    tracker: Any, report: GenerationReport, run_dir: Path, registry: Any, cfg: ExperimentConfig, parent: str
+    tracker: Any,
+    report: GenerationReport,
+    run_dir: Path,
+    registry: Any,
+    cfg: ExperimentConfig,
+    parent: str,
+    tags: dict[str, str],
 ) -> None:
     """A generation as a nested MLflow run (metrics, documents, figures, a nested run per learner) and a
-    point on the parent run's curves (:func:`_generation_curves`)."""
+    point on the parent run's curves (:func:`_generation_curves`; once: a resumed generation does not add a
+    second point). The nested runs carry ``tags`` (the attempt's) and the generation index."""
     import ray
 
     from atdrone.population import ALGORITHMS
 
     g = report.generation
     gen_dir = run_dir / "generations" / f"{g:03d}"
-    tracker.log_metrics(_generation_curves(report, registry, cfg), step=g, run_id=parent)
-    with tracker.run(cfg.name, f"generation-{g}", nested=True, tags={"atdrone.run": cfg.name}):
+    tags = {**tags, "atdrone.generation": str(g)}
+    tracker.log_metrics(_generation_curves(report, registry, cfg), step=g, run_id=parent, once=True)
+    with tracker.run(cfg.name, f"generation-{g}", nested=True, tags=tags):
         metrics = {"pop/size": len(report.population), "perf/generation_s": report.wall_s, **report.metrics}
         metrics.update({f"budget/{k}": float(v) for k, v in report.budget.items()})
         if report.matches:
@@ -290,8 +354,7 @@ def _log_generation(
             crossplay_heatmap(table, gen_dir / "crossplay.png", title=f"{cfg.name} cross-play SUC, generation {g}")
             tracker.log_artifact(gen_dir / "crossplay.png")
         for t in report.training:
-            with tracker.run(cfg.name, f"learner-{t.member}", nested=True, tags={"atdrone.run": cfg.name}):
-                tracker.set_tags({"atdrone.member": t.member, "atdrone.generation": str(g)})
+            with tracker.run(cfg.name, f"learner-{t.member}", nested=True, tags={**tags, "atdrone.member": t.member}):
                 tracker.log_dict(
                     {"parent": t.parent, "seed": t.seed, "partners": t.partners, "drawn": t.drawn}, "training.json"
                 )
@@ -352,7 +415,8 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
     tracker.log_artifact(run_dir / "population.csv")
     suc = f"{cfg.final_zoo}_SUC"
     if results:
-        tracker.log_metrics({f"eval/{cfg.final_zoo}/best_SUC": float(table[suc].max())}, step=cfg.generations)
+        best_suc = {f"eval/{cfg.final_zoo}/best_SUC": float(table[suc].max())}
+        tracker.log_metrics(best_suc, step=cfg.generations, once=True)
         best = str(table.loc[table[suc].idxmax(), "member"])
     else:
         best = state["population"][-1]
