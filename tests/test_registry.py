@@ -742,15 +742,12 @@ def test_list_over_several_registries_skips_an_unreadable_one_with_a_warning(
 
 
 # ---------------------------------------------------------------------- Ray
-@pytest.fixture(scope="module")
-def ray_cluster():
+@pytest.fixture
+def ray_cluster(local_ray):
+    """The session's Ray (tests/conftest.py), as the ray module."""
     import ray
 
-    from atdrone.service.driver import init_ray
-
-    init_ray(None, num_cpus=2)
-    yield ray
-    ray.shutdown()
+    return ray
 
 
 def test_actor_serves_the_registry_and_a_second_driver_finds_it_by_name(ray_cluster, tmp_path: Path) -> None:
