@@ -768,7 +768,11 @@ def __getattr__(name: str) -> Any:
 
 
 def registry_actor(
-    path: str | os.PathLike[str] | None = None, name: str = DEFAULT_ACTOR_NAME, *, detached: bool = False
+    path: str | os.PathLike[str] | None = None,
+    name: str = DEFAULT_ACTOR_NAME,
+    *,
+    detached: bool = False,
+    node: str | None = None,
 ) -> Any:
     """Get or create the registry actor ``name`` in namespace ``atdrone``, serving the file ``path``.
 
@@ -777,6 +781,8 @@ def registry_actor(
     meanwhile, and the next run starts a fresh actor on the same file. ``detached=True``
     makes it outlive the driver (a standing registry service; end it with ``ray.kill``).
     An existing actor that serves a different file is refused with RegistryError.
+    ``node``: a Ray node id to run the actor on (the node whose local disk holds ``path``;
+    sqlite's WAL mode does not work on network file systems).
 
     Retries: a call in flight when the actor dies is retried after the restart, and may
     have committed before the death. Every write is therefore idempotent on a natural
@@ -786,13 +792,12 @@ def registry_actor(
     member updates.
     """
     import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     file = str(Path(path if path is not None else default_path()).resolve())
-    handle = (
-        _actor_class()
-        .options(name=name, namespace=REGISTRY_NAMESPACE, get_if_exists=True, lifetime="detached" if detached else None)
-        .remote(file)
-    )
+    place = {} if node is None else {"scheduling_strategy": NodeAffinitySchedulingStrategy(node, soft=False)}
+    options = {"lifetime": "detached" if detached else None, **place}
+    handle = _actor_class().options(name=name, namespace=REGISTRY_NAMESPACE, get_if_exists=True, **options).remote(file)
     served = ray.get(handle.db_path.remote())
     if served != file:
         raise RegistryError(f"registry actor {name!r} already serves {served}, not {file}")

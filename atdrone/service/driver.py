@@ -1,11 +1,21 @@
 """The driver of a population training run: Ray, the registry actor, the coordinator, MLflow.
 
 ``run_experiment`` starts (or joins, with ``address``) a Ray cluster, serves the run's
-registry (``<out_dir>/<name>/registry.db``) from a named actor in namespace
-``atdrone``, creates the coordinator and asks it for one generation after another.
-After each generation it writes ``service_state.json`` (atomically) and logs the
-generation to MLflow as a nested run under the job's parent run, with a nested run
-per learner. ``resume=True`` continues from the last completed generation.
+registry (``<out_dir>/<name>/registry.db``, or under ``$ATDRONE_REGISTRY_DIR``) from a
+named actor in namespace ``atdrone`` on the driver's node, creates the coordinator and
+asks it for one generation after another. After each generation it logs the generation
+to MLflow as a nested run under the job's parent run, with a nested run per learner,
+then writes ``service_state.json`` (atomically). ``resume=True`` continues from the
+last completed generation.
+
+Faults. A kill at any point (SIGKILL of the driver, a node lost) is resumed exactly:
+the registry's writes are idempotent and a resume discards the rows of the generation
+it repeats; checkpoints are renamed into place; what a dead attempt logged to MLflow
+of a generation it never saved is deleted (its nested runs carry the attempt's id and
+the generation; ``"logged"`` in the state says how far MLflow is complete) and the
+parent's curves get one point per step; the best member's model version is found
+before one is made; a finished run's parent left RUNNING is ended. SIGTERM is handled
+as Ctrl-C: the MLflow runs end KILLED.
 """
 
 from __future__ import annotations
@@ -170,11 +180,18 @@ def _run(
             return done
     elif resume and (run_dir / "config.json").exists():
         check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
+    db = registry_path(cfg, run_dir)
+    if saved.get("registry", str(db)) != str(db):
+        raise RunError(
+            f"{run_dir} keeps its registry at {saved['registry']}, not {db}: resume with the same "
+            f"{REGISTRY_DIR_ENV} (or --registry-dir)"
+        )
     run_dir.mkdir(parents=True, exist_ok=True)
     _write_json(run_dir / "config.json", cfg.to_dict())
     init_ray(address, num_cpus)
     check_schedulable(cfg, wait_s=60.0 if (address or os.environ.get("RAY_ADDRESS")) else 0.0)
-    registry = registry_actor(run_dir / "registry.db", name=registry_name(cfg.name))
+    # on the driver's node: the sqlite file (WAL) needs a local disk, which network file systems are not
+    registry = registry_actor(db, name=registry_name(cfg.name), node=ray.get_runtime_context().get_node_id())
     start = saved.get("coordinator", {}).get("generation", 0)
     ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
     coordinator = Coordinator.options(max_concurrency=2).remote(  # the 2nd thread answers progress()
@@ -187,6 +204,14 @@ def _run(
 
 
 SUMMARY_FILE = "summary.json"
+REGISTRY_DIR_ENV = "ATDRONE_REGISTRY_DIR"
+
+
+def registry_path(cfg: ExperimentConfig, run_dir: Path) -> Path:
+    """The run's registry file: ``$ATDRONE_REGISTRY_DIR/<name>/registry.db`` when set (a cluster: a local disk
+    of the driver's node, as sqlite's WAL needs), else ``<run_dir>/registry.db``."""
+    folder = os.environ.get(REGISTRY_DIR_ENV)
+    return (Path(folder).resolve() / cfg.name if folder else run_dir) / "registry.db"
 
 
 def _completed(
@@ -239,7 +264,7 @@ def _generations(
             log.info("removed %d, ended %d MLflow runs of an interrupted attempt", len(forgotten), len(killed))
         if "mlflow_run_id" not in saved:  # from now on a rerun without --resume is refused
             state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": start}
-            _write_json(state_path, state)
+            _write_json(state_path, {**state, "registry": str(registry_path(cfg, run_dir))})
         tracker.log_params({"experiment": cfg.to_dict()})
         tracker.set_tags({"atdrone.algorithm": cfg.algorithm, "atdrone.task": cfg.task})
         tracker.log_artifact(run_dir / "config.json")
@@ -250,7 +275,7 @@ def _generations(
             _log_generation(tracker, report, run_dir, registry, cfg, run_id, attempt)
             # the generation is saved and logged ("logged": MLflow holds generations 0 .. logged - 1)
             state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": g + 1}
-            _write_json(state_path, state)
+            _write_json(state_path, {**state, "registry": str(registry_path(cfg, run_dir))})
             if progress:
                 learners = ", ".join(report.learners)
                 print(
@@ -472,7 +497,7 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
             table,
             f"best member: {summary['best']}; run directory: {summary['run_dir']}",
             "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
-            f"registry: atdrone registry --db {summary['run_dir']}/registry.db list",
+            f"registry: atdrone registry --db {registry_path(cfg, Path(summary['run_dir']))} list",
             f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion)",
             f"MLflow: experiment {cfg.experiment or cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
             f"browse with: mlflow ui --backend-store-uri {tracking_uri}",
