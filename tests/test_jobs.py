@@ -205,6 +205,7 @@ def test_a_damaged_service_state_or_another_registry_dir_is_one_line_and_status_
 ) -> None:
     from atdrone.service.experiment import load_experiment
 
+    monkeypatch.setenv("ATDRONE_REGISTRY_DIR", "")  # unset, and restored after main sets it for --registry-dir
     main = _load_script(TRAIN).main
     args = ["configs/experiments/hola_quick.json", "--resume", "--out-dir", str(tmp_path)]
     run_dir = tmp_path / "hola_quick"
@@ -217,7 +218,6 @@ def test_a_damaged_service_state_or_another_registry_dir_is_one_line_and_status_
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict()))
     state = {"coordinator": {"generation": 1}, "registry": str(run_dir / "registry.db")}
     (run_dir / "service_state.json").write_text(json.dumps(state))
-    monkeypatch.delenv("ATDRONE_REGISTRY_DIR", raising=False)
     assert main([*args, "--registry-dir", str(tmp_path / "local")]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and f"keeps its registry at {run_dir / 'registry.db'}" in lines[0], lines
