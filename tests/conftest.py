@@ -60,8 +60,9 @@ def _hover_and_turn_once(
     _hover_and_turn_results: dict[str, list[str]], monkeypatch: pytest.MonkeyPatch
 ) -> Iterator[None]:
     """The deploy preflight's command-path check (a simulated hover-and-turn through cflib, seconds of flight)
-    depends only on the task, the flight height and the command function: each combination is flown once per
-    session and its findings reused. Tests that call ``hover_and_turn`` directly still fly it."""
+    depends only on the task, the flight height and the command function: each combination that passed is
+    not flown again in the session (one that found problems is). Tests that call ``hover_and_turn`` directly
+    still fly it."""
     job = sys.modules.get("atdrone.deploy.job")
     real: Callable[..., list[str]] | None = getattr(job, "hover_and_turn", None)
     if real is None:
@@ -70,9 +71,12 @@ def _hover_and_turn_once(
 
     def once(task: Any, height: float, command: Callable[..., Any], *args: Any, **kwargs: Any) -> list[str]:
         key = repr((task, height, command.__module__, command.__qualname__, args, sorted(kwargs.items())))
-        if key not in _hover_and_turn_results:
-            _hover_and_turn_results[key] = real(task, height, command, *args, **kwargs)
-        return list(_hover_and_turn_results[key])
+        if key in _hover_and_turn_results:
+            return []
+        problems = real(task, height, command, *args, **kwargs)
+        if not problems:  # only a pass is reused: a finding is flown again, never repeated from memory
+            _hover_and_turn_results[key] = problems
+        return list(problems)
 
     monkeypatch.setattr(job, "hover_and_turn", once)
     yield
