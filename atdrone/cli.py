@@ -520,7 +520,7 @@ def run_deploy(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     try:
         result = deploy(cfg, arm=args.arm, tracking_uri=args.tracking_uri, compare=args.compare)
-    except (DeployError, BridgeError, MocapError, KeyError) as exc:
+    except (DeployError, BridgeError, MocapError) as exc:  # a KeyError here is a bug (the deploy names its own)
         _error(args, exc.args[0] if exc.args else exc)
         return 1
     if not result.preflight.ok:

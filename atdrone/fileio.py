@@ -1,7 +1,9 @@
 """Files written whole or not at all: write to a temp file beside the target, then rename.
 
 A reader (or a crash half-way) never sees a half-written GIF, JSON or CSV: the new
-content appears under its name in one ``os.replace``.
+content appears under its name in one ``os.replace``. The file is fsynced before the
+rename and its directory after it, so once the call returns the new content survives a
+power loss too (not only a killed process).
 """
 
 from __future__ import annotations
@@ -34,7 +36,21 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], Any]
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    fsync_dir(path.parent)
     return path
+
+
+def fsync_dir(folder: str | os.PathLike[str]) -> None:
+    """Make a rename (or creation) in ``folder`` durable: fsync the directory itself (POSIX; a no-op where
+    directories cannot be opened, as on Windows)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:

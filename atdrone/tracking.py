@@ -124,15 +124,48 @@ class Tracker:
 
     def end_stale_runs(self, experiment: str, tags: Mapping[str, str], keep: str | None = None) -> list[str]:
         """End as KILLED the RUNNING runs with ``tags`` (a dead attempt's), except ``keep``; their ids."""
+        stale = [r.info.run_id for r in self._search(experiment, tags, running=True) if r.info.run_id != keep]
+        client = self.mlflow.MlflowClient()
+        for run_id in stale:
+            client.set_terminated(run_id, "KILLED")
+        return stale
+
+    def forget_runs(self, experiment: str, tags: Mapping[str, str], step_tag: str, first: int, keep: str) -> list[str]:
+        """Delete the runs with ``tags`` whose ``step_tag`` is ``first`` or later (a dead attempt's record of
+        the generations it never saved), ending them KILLED first when still RUNNING; their ids.
+
+        ``keep`` (the parent run being resumed) is never touched.
+        """
+        client = self.mlflow.MlflowClient()
+        gone = []
+        for run in self._search(experiment, tags):
+            step = run.data.tags.get(step_tag)
+            if run.info.run_id == keep or step is None or int(step) < first:
+                continue
+            if run.info.status == "RUNNING":
+                client.set_terminated(run.info.run_id, "KILLED")
+            client.delete_run(run.info.run_id)
+            gone.append(run.info.run_id)
+        return gone
+
+    def _search(self, experiment: str, tags: Mapping[str, str], running: bool = False) -> list[Any]:
+        """The (undeleted) runs of ``experiment`` with ``tags`` (values: names checked by the config's rule, or hex)."""
         client = self.mlflow.MlflowClient()
         found = client.get_experiment_by_name(experiment)
         if found is None:
             return []
-        query = " and ".join([f"tags.`{k}` = '{v}'" for k, v in tags.items()] + ["attributes.status = 'RUNNING'"])
-        stale = [r.info.run_id for r in client.search_runs([found.experiment_id], query) if r.info.run_id != keep]
-        for run_id in stale:
-            client.set_terminated(run_id, "KILLED")
-        return stale
+        terms = [f"tags.`{k}` = '{v}'" for k, v in tags.items()] + (
+            ["attributes.status = 'RUNNING'"] if running else []
+        )
+        return list(client.search_runs([found.experiment_id], " and ".join(terms), max_results=50_000))
+
+    def end_run_if_running(self, run_id: str, status: str = "FINISHED") -> bool:
+        """End run ``run_id`` with ``status`` when it is still RUNNING (an attempt killed after its last record)."""
+        client = self.mlflow.MlflowClient()
+        if client.get_run(run_id).info.status != "RUNNING":
+            return False
+        client.set_terminated(run_id, status)
+        return True
 
     def log_params(self, params: Mapping[str, Any]) -> None:
         flat = _flatten(params)
@@ -142,9 +175,21 @@ class Tracker:
         if fresh:
             self.mlflow.log_params(fresh)
 
-    def log_metrics(self, metrics: Mapping[str, float], step: int, run_id: str | None = None) -> None:
-        """Log to the active run, or to ``run_id`` (e.g. the parent of the nested run now active)."""
+    def log_metrics(
+        self, metrics: Mapping[str, float], step: int, run_id: str | None = None, once: bool = False
+    ) -> None:
+        """Log to the active run, or to ``run_id`` (e.g. the parent of the nested run now active).
+
+        ``once``: skip the metrics that already have a point at ``step`` (a resumed run
+        logging a step its dead attempt logged: the points are one batch, so all or none).
+        """
         clean = {k: float(v) for k, v in metrics.items() if v is not None and v == v}
+        if once and clean:
+            client = self.mlflow.MlflowClient()
+            target = run_id or self._active_id()
+            clean = {
+                k: v for k, v in clean.items() if all(m.step != step for m in client.get_metric_history(target, k))
+            }
         if not clean:
             return
         if run_id is None:
@@ -153,6 +198,12 @@ class Tracker:
         client = self.mlflow.MlflowClient()
         stamp = int(time.time() * 1000)
         client.log_batch(run_id, metrics=[self.mlflow.entities.Metric(k, v, stamp, step) for k, v in clean.items()])
+
+    def _active_id(self) -> str:
+        active = self.mlflow.active_run()
+        if active is None:
+            raise RuntimeError("no active MLflow run")
+        return str(active.info.run_id)
 
     def log_artifact(self, path: str | Path, artifact_path: str | None = None) -> None:
         self.mlflow.log_artifact(str(path), artifact_path=artifact_path)
@@ -172,7 +223,9 @@ class Tracker:
         (JSON header + safetensors, digest-checked when loaded). ``score`` (e.g. the
         best member's final-zoo SUC) is kept as the version's ``score`` tag, and the
         alias ``champion`` moves to the best-scoring version of all runs registered
-        under ``name``. Returns the new version number.
+        under ``name``. Returns the version number: the active run's version already
+        registered with the same ``member`` tag when there is one (a resumed run
+        registering again), else a new one.
         """
         path = Path(checkpoint)
         self.mlflow.log_artifact(str(path), artifact_path="model")
@@ -187,7 +240,12 @@ class Tracker:
         info = {**(tags or {}), "checkpoint_file": path.name}
         if score is not None:
             info["score"] = repr(float(score))
-        version = client.create_model_version(name, source, run_id=active.info.run_id, tags=info)
+        mine = [
+            v
+            for v in client.search_model_versions(f"name = '{name}'")
+            if v.run_id == active.info.run_id and v.tags.get("member") == info.get("member")
+        ]
+        version = mine[0] if mine else client.create_model_version(name, source, run_id=active.info.run_id, tags=info)
         best = max(
             client.search_model_versions(f"name = '{name}'"),
             key=lambda v: (float(v.tags.get("score", "-inf")), int(v.version)),

@@ -6,10 +6,13 @@
 
 Inside a Ray job RAY_ADDRESS is set, so ``atdrone.service.driver.run_experiment`` joins
 the cluster instead of starting a local Ray; run outside a job it starts a local Ray
-(or joins --address). The run lives in ``<out_dir>/<name>/`` (registry.db, member
-checkpoints, service_state.json): on a cluster that must be storage every node sees,
-so pass --out-dir (or set ATDRONE_OUT_DIR) to a shared path; MLflow goes to
---tracking-uri, else MLFLOW_TRACKING_URI, else ./mlflow.db. The overrides are named
+(or joins --address). The run lives in ``<out_dir>/<name>/`` (member checkpoints,
+service_state.json, ...): on a cluster that must be storage every node sees, so pass
+--out-dir (or set ATDRONE_OUT_DIR) to a shared path; its registry.db (sqlite in WAL
+mode, which network file systems do not support) goes under --registry-dir (or
+ATDRONE_REGISTRY_DIR), a folder on the local disk of the node the driver runs on (the
+registry actor runs there too). MLflow goes to --tracking-uri, else
+MLFLOW_TRACKING_URI, else ./mlflow.db (on a cluster: a tracking server). The overrides are named
 like the config keys (--updates-per-generation and --updates_per_generation alike).
 Bad input exits with status 2 and a one-line error.
 """
@@ -46,10 +49,25 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("ATDRONE_OUT_DIR"),
         help="where runs are written (default: $ATDRONE_OUT_DIR, else the config's out_dir)",
     )
+    p.add_argument(
+        "--registry-dir",
+        default=None,
+        help="a folder on the driver node's local disk for the run's registry.db (default: $ATDRONE_REGISTRY_DIR, "
+        "else the run directory); sqlite's WAL does not work on NFS/EFS",
+    )
     p.add_argument("--tracking-uri", default=None, help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI)")
     p.add_argument("--address", default=None, help="Ray address (default: $RAY_ADDRESS, set inside a Ray job)")
     p.add_argument("--final-zoo", "--final_zoo", dest="final_zoo", default=None, help="override the final zoo")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF of the best member")
+    p.add_argument(
+        "--learner-gpus",
+        "--learner_gpus",
+        dest="learner_gpus",
+        type=float,
+        default=None,
+        metavar="G",
+        help="override learner_gpus: GPUs each learner asks Ray for (its update then runs on CUDA)",
+    )
     p.add_argument("--ppo", default=None, help="PPO overrides as JSON, merged over the config's ppo section")
     for key in INT_OVERRIDES:
         flag = key.replace("_", "-")
@@ -61,11 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.config import ConfigError, read_document
+    from atdrone.errors import UserError
     from atdrone.service.driver import format_summary, run_experiment
     from atdrone.service.experiment import load_experiment
 
     overrides = {key: getattr(args, key) for key in INT_OVERRIDES}
-    overrides.update(name=args.name, out_dir=args.out_dir, final_zoo=args.final_zoo)
+    overrides.update(name=args.name, out_dir=args.out_dir, final_zoo=args.final_zoo, learner_gpus=args.learner_gpus)
     if args.no_gif:
         overrides["gif"] = False
     try:
@@ -81,12 +100,16 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
         return EXIT_USAGE
+    if args.registry_dir:
+        from atdrone.service.driver import REGISTRY_DIR_ENV
+
+        os.environ[REGISTRY_DIR_ENV] = args.registry_dir
     where = os.environ.get("RAY_ADDRESS") or args.address or "a local Ray"
     print(f"{PROG}: {cfg.name} ({cfg.algorithm} on {cfg.task}, {cfg.generations} generations) on {where}", flush=True)
     try:
         summary = run_experiment(cfg, address=args.address, resume=args.resume, tracking_uri=args.tracking_uri)
-    except FileExistsError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
+    except UserError as exc:  # a run that exists, a damaged state file, a cluster that cannot place it, ...
+        print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
         return EXIT_USAGE
     from atdrone.tracking import tracking_uri
 

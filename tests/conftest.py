@@ -1,8 +1,12 @@
-"""Shared fixtures: every test's MLflow store in its own temporary folder; one way to start a local Ray."""
+"""Shared fixtures: every test's MLflow store in its own temporary folder; one local Ray for the whole session
+(subprocess drivers join it); the deploy preflight's hover-and-turn flown once per session."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import sys
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import pytest
 
@@ -14,23 +18,73 @@ def _mlflow_in_tmp(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}/mlflow.db")
 
 
-@pytest.fixture(scope="module")
-def local_ray() -> Iterator[None]:
-    """A local Ray on 2 CPUs as the service starts it (loopback only), shut down after the module."""
+@pytest.fixture(scope="session")
+def _ray_session() -> Iterator[str]:
+    """A local Ray on 2 CPUs as the service starts it (loopback only), started once; yields its GCS address."""
     import ray
 
     from atdrone.service.driver import init_ray
 
     init_ray(None, num_cpus=2)
-    yield
+    yield ray.get_runtime_context().gcs_address
     ray.shutdown()
+
+
+@pytest.fixture
+def local_ray(_ray_session: str) -> str:
+    """The session's Ray, with every CPU free (a killed actor goes asynchronously); yields its GCS address,
+    which a subprocess driver passes as ``address`` to join it instead of starting a Ray of its own.
+
+    A test that leaves an actor holding a CPU would make every later service test wait for Ray to place its
+    workers; it fails here instead, naming what is left."""
+    import ray
+
+    deadline = time.monotonic() + 60
+    while (free := ray.available_resources().get("CPU", 0.0)) < ray.cluster_resources().get("CPU", 0.0):
+        if time.monotonic() > deadline:
+            from ray.util.state import list_actors
+
+            alive = [f"{a.class_name} ({a.name or a.actor_id})" for a in list_actors(filters=[("state", "=", "ALIVE")])]
+            pytest.fail(f"only {free:g} CPUs free: an earlier test left actors running: {', '.join(alive)}")
+        time.sleep(0.1)
+    return _ray_session
+
+
+@pytest.fixture(scope="session")
+def _hover_and_turn_results() -> dict[str, list[str]]:
+    return {}
+
+
+@pytest.fixture(autouse=True)
+def _hover_and_turn_once(
+    _hover_and_turn_results: dict[str, list[str]], monkeypatch: pytest.MonkeyPatch
+) -> Iterator[None]:
+    """The deploy preflight's command-path check (a simulated hover-and-turn through cflib, seconds of flight)
+    depends only on the task, the flight height and the command function: each combination that passed is
+    not flown again in the session (one that found problems is). Tests that call ``hover_and_turn`` directly
+    still fly it."""
+    job = sys.modules.get("atdrone.deploy.job")
+    real: Callable[..., list[str]] | None = getattr(job, "hover_and_turn", None)
+    if real is None:
+        yield
+        return
+
+    def once(task: Any, height: float, command: Callable[..., Any], *args: Any, **kwargs: Any) -> list[str]:
+        key = repr((task, height, command.__module__, command.__qualname__, args, sorted(kwargs.items())))
+        if key in _hover_and_turn_results:
+            return []
+        problems = real(task, height, command, *args, **kwargs)
+        if not problems:  # only a pass is reused: a finding is flown again, never repeated from memory
+            _hover_and_turn_results[key] = problems
+        return list(problems)
+
+    monkeypatch.setattr(job, "hover_and_turn", once)
+    yield
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     """Nothing left running at exit: Ray shut down, figures closed (a live Ray core worker at interpreter exit
     can crash the process after the tests passed)."""
-    import sys
-
     if "ray" in sys.modules:
         import ray
 

@@ -149,55 +149,6 @@ def test_a_damaged_service_state_is_a_clear_error(local_ray, tmp_path):
         run_experiment(load_experiment(_service(tmp_path, "bad")), resume=True, progress=False)
 
 
-# ------------------------------------------------------------------ 3. a generation is all or nothing
-def test_a_run_killed_between_a_checkpoint_and_its_generation_leaves_no_orphan(local_ray, tmp_path):
-    """Killed once generation 0's first member is written: a plain rerun is refused, a resume rebuilds
-    generation 0 under the same ids, and the dead attempt's MLflow runs end KILLED."""
-
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
-    doc = _service(tmp_path, "orphan_t", generations=1)
-    script = (
-        "import json, sys; from atdrone.service.driver import run_experiment; "
-        "from atdrone.service.experiment import load_experiment; "
-        f"run_experiment(load_experiment(json.loads(sys.argv[1])), tracking_uri={uri!r}, progress=False, num_cpus=2)"
-    )
-    proc = subprocess.Popen([sys.executable, "-c", script, json.dumps(doc)], start_new_session=True)
-    first = tmp_path / "orphan_t" / "members" / "hola-g0-0.pt"
-    deadline = time.monotonic() + 180
-    try:
-        while time.monotonic() < deadline and proc.poll() is None and not first.exists():
-            time.sleep(0.02)
-        assert proc.poll() is None and first.exists(), "the run ended before its first checkpoint"
-    finally:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-    state = json.loads((tmp_path / "orphan_t" / STATE_FILE).read_text())
-    assert state["coordinator"]["generation"] == 0  # written before generation 0: the kill came inside it
-    with pytest.raises(FileExistsError, match="--resume"):
-        run_experiment(load_experiment(doc), tracking_uri=uri, progress=False)
-    client = mlflow.MlflowClient(tracking_uri=uri)
-    experiment = client.get_experiment_by_name("orphan_t").experiment_id
-    (parent,) = client.search_runs([experiment])
-    assert parent.info.status == "RUNNING" and parent.info.run_id == state["mlflow_run_id"]
-    # what a kill while a generation was being logged leaves: a nested run still RUNNING
-    dead = client.create_run(experiment, tags={"atdrone.run": "orphan_t", "mlflow.parentRunId": parent.info.run_id})
-
-    summary = run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)
-    members = Registry(tmp_path / "orphan_t" / "registry.db").members(run="orphan_t")
-    assert sorted(members["id"]) == ["hola-g0-0", "hola-g0-1"]  # pi0_levels 2, each once
-    assert set(members["status"]) == {"active"} and members["mlflow_run_id"].notna().all()
-    for _, m in members.iterrows():
-        assert load_checkpoint(m["checkpoint"])[1]["sha256"] == m["sha256"]
-    status = {r.info.run_id: r.info.status for r in client.search_runs([experiment])}
-    assert status.pop(dead.info.run_id) == "KILLED"
-    assert set(status.values()) == {"FINISHED"} and parent.info.run_id in status  # the parent run was resumed
-    assert summary["population"]["member"].tolist() == ["hola-g0-0", "hola-g0-1"]
-    assert [m.get("eta") for m in members["metrics"]] == [None, None]  # one generation: no G'_t played yet
-    again = run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)  # make demo, twice
-    assert again["complete"] and again["best"] == summary["best"] and again["model"] == summary["model"]
-    assert len(client.search_runs([experiment])) == len(status) + 1  # nothing run, nothing logged
-
-
 # ------------------------------------------------------------------ MLflow: no pickle, one champion
 def _checkpoint(path: Path, seed: int) -> Path:
     import torch
@@ -350,3 +301,128 @@ def test_the_coordinator_reports_what_a_generation_is_doing(local_ray, tmp_path)
     assert {"train: learner 2, update 2/3", "train: learner 2, update 3/3"} & set(seen), seen
     assert "evaluate: 2 matches, 8 episodes (0 matches before)" in seen, seen
     assert "zoo: 2 member(s) on zoo1, 4 episodes each" in seen, seen
+
+
+# ------------------------------------------------------------------ edges: names, signals, fsync, bugs
+def test_an_experiment_name_the_mlflow_filters_cannot_hold_is_refused_when_loaded(tmp_path):
+    """The experiment name becomes the MLflow experiment and model name (and goes into filter strings): it is
+    checked with the run name's rule when the config is loaded, not after every generation has trained."""
+    from atdrone.config import ConfigError
+
+    for bad in ("o'brien run", 'say "hi"', "a/b"):
+        with pytest.raises(ConfigError, match=r"^experiment: .* is not a run name"):
+            load_experiment(_service(tmp_path, "fine", experiment=bad))
+    assert load_experiment(_service(tmp_path, "fine", experiment="obrien-run.2")).experiment == "obrien-run.2"
+
+
+def test_sigterm_ends_the_runs_killed_like_ctrl_c(tmp_path):
+    """`ray job stop` sends SIGTERM: inside run_experiment it raises KeyboardInterrupt, so the parent and the
+    nested run end KILLED (not left RUNNING), and the handler is restored afterwards."""
+    from atdrone.service.driver import _sigterm_as_interrupt
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    tracker = Tracker(uri)
+    before = signal.getsignal(signal.SIGTERM)
+    ids = []
+    with (
+        pytest.raises(KeyboardInterrupt, match="SIGTERM"),
+        _sigterm_as_interrupt(),
+        tracker.run("term", "parent") as parent,
+        tracker.run("term", "child", nested=True) as child,
+    ):
+        ids += [parent, child]
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises in this frame long before
+    assert signal.getsignal(signal.SIGTERM) == before
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    assert [client.get_run(i).info.status for i in ids] == ["KILLED", "KILLED"]
+
+
+def test_atomic_writes_fsync_the_directory_after_the_rename(tmp_path, monkeypatch):
+    """The rename is made durable: after os.replace the target's directory is opened and fsynced."""
+    import stat
+
+    from atdrone import fileio
+
+    events: list[tuple[str, object]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        mode = os.fstat(fd).st_mode
+        events.append(("fsync", "dir" if stat.S_ISDIR(mode) else "file"))
+        real_fsync(fd)
+
+    def replace(src, dst) -> None:  # type: ignore[no-untyped-def]
+        events.append(("replace", Path(dst).name))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(fileio.os, "fsync", fsync)
+    monkeypatch.setattr(fileio.os, "replace", replace)
+    fileio.atomic_write_text(tmp_path / "sub" / "state.json", "{}")
+    assert events == [("fsync", "file"), ("replace", "state.json"), ("fsync", "dir")]
+    assert (tmp_path / "sub" / "state.json").read_text() == "{}"
+
+
+def test_a_key_error_inside_the_deploy_is_reported_as_a_bug_not_a_user_error(tmp_path, monkeypatch, capsys):
+    """The deploy turns a missing member or model into its own DeployError; any other KeyError is a bug, so
+    the CLI names it an internal error and --debug shows its traceback."""
+    import atdrone.deploy.job as job
+
+    def broken(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise KeyError("cf7")
+
+    monkeypatch.setattr(job, "run_deploy", broken)
+    assert main(["deploy", "sim_4p2e1o", "--out-dir", str(tmp_path)]) == 1
+    assert "internal error: KeyError: cf7" in capsys.readouterr().err
+    with pytest.raises(KeyError, match="cf7"):
+        main(["--debug", "deploy", "sim_4p2e1o", "--out-dir", str(tmp_path)])
+
+
+def test_a_best_member_registered_again_by_a_resumed_run_is_the_same_version(tmp_path):
+    """register_checkpoint finds the run's version of the member before making one: a resume that registers
+    again gets the same version; another member of the run, or another run, gets a new one."""
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    path = _checkpoint(tmp_path / "m.pt", seed=0)
+    with tracker.run("again", "run") as run_id:
+        first = tracker.register_checkpoint(path, "atdrone-again", 40.0, {"member": "m"})
+    with tracker.run("again", "run", run_id=run_id):
+        assert tracker.register_checkpoint(path, "atdrone-again", 40.0, {"member": "m"}) == first == "1"
+        assert tracker.register_checkpoint(path, "atdrone-again", 30.0, {"member": "n"}) == "2"
+    with tracker.run("again", "other"):
+        assert tracker.register_checkpoint(path, "atdrone-again", 20.0, {"member": "m"}) == "3"
+    versions = tracker.mlflow.MlflowClient().search_model_versions("name = 'atdrone-again'")
+    assert len(versions) == 3
+
+
+def test_metrics_logged_once_per_step_add_no_second_point(tmp_path):
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    with tracker.run("once", "parent") as run_id:
+        tracker.log_metrics({"gen/a": 1.0}, step=0, run_id=run_id, once=True)
+        tracker.log_metrics({"gen/a": 1.0, "gen/b": 2.0}, step=0, run_id=run_id, once=True)  # b is new at 0
+        tracker.log_metrics({"gen/a": 3.0}, step=1, once=True)
+        tracker.log_metrics({"gen/a": 3.0}, step=1, once=True)
+    client = tracker.mlflow.MlflowClient()
+    assert [(m.step, m.value) for m in client.get_metric_history(run_id, "gen/a")] == [(0, 1.0), (1, 3.0)]
+    assert [(m.step, m.value) for m in client.get_metric_history(run_id, "gen/b")] == [(0, 2.0)]
+
+
+def test_two_runs_of_one_name_in_two_out_dirs_keep_their_own_mlflow_runs(tmp_path):
+    """The records of a run are found by its run directory's key, not its name: resuming b/exp ends and
+    removes b's dead nested runs only, never the live ones of a/exp (same name, same store)."""
+    from atdrone.service.driver import run_tags
+
+    cfg = load_experiment(_service(tmp_path, "exp"))
+    a, b = run_tags(cfg, tmp_path / "a" / "exp"), run_tags(cfg, tmp_path / "b" / "exp")
+    assert a["atdrone.run"] == b["atdrone.run"] == "exp" and a["atdrone.run_dir"] != b["atdrone.run_dir"]
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    client = tracker.mlflow.MlflowClient()
+    ident = tracker.experiment("exp")
+    live = client.create_run(ident, tags={**a, "atdrone.generation": "1"}).info.run_id
+    dead = client.create_run(ident, tags={**b, "atdrone.generation": "1"}).info.run_id
+    kept = client.create_run(ident, tags={**b, "atdrone.generation": "0"}).info.run_id
+    client.set_terminated(kept, "FINISHED")
+    assert tracker.forget_runs("exp", b, "atdrone.generation", 1, keep="") == [dead]
+    assert tracker.end_stale_runs("exp", b) == []
+    assert client.get_run(dead).info.lifecycle_stage == "deleted" and client.get_run(dead).info.status == "KILLED"
+    assert client.get_run(live).info.status == "RUNNING" and client.get_run(live).info.lifecycle_stage == "active"
+    assert client.get_run(kept).info.status == "FINISHED" and client.get_run(kept).info.lifecycle_stage == "active"

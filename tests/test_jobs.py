@@ -109,7 +109,7 @@ def test_launcher_configs_pass_rays_schema(name: str) -> None:
     validate_config(prepare_config(config))
     setup = " ".join(config["setup_commands"])
     assert setup.index("torch==2.13.0") < setup.index("-e ~/atdrone")
-    assert config["file_mounts"] == {"~/atdrone": "."}
+    assert config["file_mounts"] == {"~/atdrone": ".", "~/.ray/auth_token": "~/.ray/auth_token"}  # one token
     assert any("ray start --head" in c for c in config["head_start_ray_commands"])
     assert any("ray start --address" in c for c in config["worker_start_ray_commands"])
     if name == "aws.yaml":
@@ -131,11 +131,96 @@ def test_rayjob_manifest_runs_a_script_that_exists() -> None:
     assert all(g["template"]["spec"]["containers"] for g in cluster["workerGroupSpecs"])
 
 
-def test_cluster_guide_names_the_commands() -> None:
+def _head_commands(name: str) -> str:
+    return " ".join(yaml.safe_load((REPO / "cluster" / name).read_text())["head_start_ray_commands"])
+
+
+@pytest.mark.parametrize("name", ["onprem.yaml", "aws.yaml"])
+def test_launcher_heads_keep_the_job_api_on_loopback_with_token_auth(name: str) -> None:
+    """The dashboard / job API runs whatever it is sent: the heads bind it to 127.0.0.1 (reached through
+    `ray dashboard`, an SSH tunnel) and start with token authentication on."""
+    head = _head_commands(name)
+    assert "--dashboard-host=127.0.0.1" in head and "0.0.0.0" not in head
+    assert "RAY_AUTH_MODE=token" in head
+
+
+def test_rayjob_keeps_the_job_api_on_loopback_the_registry_local_and_mlflow_on_a_server() -> None:
+    """KubeRay: the head's dashboard on 127.0.0.1 with token auth, the submitter a sidecar of the head pod
+    (the only way to reach it); the registry on a claim only the head pod mounts (the driver and the
+    registry actor run there; sqlite's WAL does not work on NFS / EFS), checkpoints on the shared claim
+    every pod mounts; MLflow a tracking server on the head's 127.0.0.1 with its store in a database."""
+    text = (REPO / "cluster" / "rayjob.yaml").read_text()
+    manifest = yaml.safe_load(text)
+    spec = manifest["spec"]
+    cluster = spec["rayClusterSpec"]
+    head = cluster["headGroupSpec"]
+    assert head["rayStartParams"]["dashboard-host"] == "127.0.0.1" and "0.0.0.0" not in text
+    assert cluster["authOptions"] == {"mode": "token"} and spec["submissionMode"] == "SidecarMode"
+    job_env = yaml.safe_load(spec["runtimeEnvYAML"])["env_vars"]
+
+    def claim(template: dict, folder: str) -> str | None:
+        """The claim behind the mount of ``folder`` in the Ray container of a pod template (None: none)."""
+        pod = template["spec"]
+        ray_container = pod["containers"][0]
+        mounts = [m for m in ray_container["volumeMounts"] if folder.startswith(m["mountPath"])]
+        if not mounts:
+            return None
+        volume = next(v for v in pod["volumes"] if v["name"] == mounts[0]["name"])
+        return volume["persistentVolumeClaim"]["claimName"]
+
+    assert head["template"]["spec"]["containers"][0]["name"] == "ray-head"
+    assert claim(head["template"], job_env["ATDRONE_OUT_DIR"]) == "atdrone-shared"
+    assert claim(head["template"], job_env["ATDRONE_REGISTRY_DIR"]) == "atdrone-registry"
+    for group in cluster["workerGroupSpecs"]:
+        assert claim(group["template"], job_env["ATDRONE_OUT_DIR"]) == "atdrone-shared"
+        assert claim(group["template"], job_env["ATDRONE_REGISTRY_DIR"]) is None, group["groupName"]
+    assert job_env["MLFLOW_TRACKING_URI"] == "http://127.0.0.1:5000"
+    (server,) = [c for c in head["template"]["spec"]["containers"] if c["name"] == "mlflow"]
+    argv = server["command"]
+    assert argv[:2] == ["mlflow", "server"] and argv[argv.index("--host") + 1] == "127.0.0.1"
+    assert argv[argv.index("--port") + 1] == "5000" and "sqlite" not in argv[argv.index("--backend-store-uri") + 1]
+    assert any(
+        g["template"]["spec"]["containers"][0]["resources"]["limits"].get("nvidia.com/gpu")
+        for g in cluster["workerGroupSpecs"]
+    )
+
+
+def test_cluster_guide_gives_the_storage_and_gpu_rules_the_code_follows() -> None:
+    """The guide's storage and GPU advice is what the code does: the registry under ATDRONE_REGISTRY_DIR
+    (--registry-dir) on the driver's node, MLflow on a tracking server with a database, and learners that
+    ask Ray for `learner_gpus` GPUs each (a config field, refused when the cluster has none)."""
+    from atdrone.service.experiment import ExperimentConfig
+
     guide = (REPO / "cluster" / "README.md").read_text()
-    commands = ("ray start --head", "ray job submit", "ray up cluster/onprem.yaml", "kubectl apply -f cluster/rayjob")
-    for text in (*commands, "MLFLOW_TRACKING_URI", "GPU"):
-        assert text in guide
+    assert "learner_gpus" in {f for f in ExperimentConfig.__dataclass_fields__}
+    for text in ("ATDRONE_REGISTRY_DIR", "--registry-dir", "mlflow server", "postgresql://", '"learner_gpus": 1'):
+        assert text in guide, text
+    assert "ask Ray for no GPU" not in guide and "--dashboard-host=0.0.0.0" not in guide
+    for command in ("ray job submit", "ray up cluster/onprem.yaml", "kubectl apply -f cluster/rayjob.yaml"):
+        assert command in guide
+
+
+def test_a_damaged_service_state_or_another_registry_dir_is_one_line_and_status_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from atdrone.service.experiment import load_experiment
+
+    monkeypatch.setenv("ATDRONE_REGISTRY_DIR", "")  # unset, and restored after main sets it for --registry-dir
+    main = _load_script(TRAIN).main
+    args = ["configs/experiments/hola_quick.json", "--resume", "--out-dir", str(tmp_path)]
+    run_dir = tmp_path / "hola_quick"
+    run_dir.mkdir()
+    (run_dir / "service_state.json").write_text("{not json")
+    assert main(args) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "unreadable service state" in lines[0] and lines[0].startswith("jobs/train.py: error:")
+    cfg = load_experiment("configs/experiments/hola_quick.json", out_dir=str(tmp_path))
+    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict()))
+    state = {"coordinator": {"generation": 1}, "registry": str(run_dir / "registry.db")}
+    (run_dir / "service_state.json").write_text(json.dumps(state))
+    assert main([*args, "--registry-dir", str(tmp_path / "local")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and f"keeps its registry at {run_dir / 'registry.db'}" in lines[0], lines
 
 
 # ------------------------------------------------------------ a real head

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import pickle
 from collections import Counter
+from typing import Any
 
 import numpy as np
 import pytest
@@ -15,9 +16,9 @@ from atdrone.config import load_task
 from atdrone.learn.learner import Learner, LearnerSpec
 from atdrone.learn.ppo import PPOConfig, ppo_config
 from atdrone.learn.rollout import RolloutWorker
-from atdrone.policies.zoo import load_zoo
-from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor, run_updates
-from atdrone.teams.partners import Uniform
+from atdrone.policies.zoo import build_policy, load_zoo
+from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor, run_updates, update_seed
+from atdrone.teams.partners import Uniform, as_sampler
 
 TASK = load_task("4p2e1o")
 SMALL = {"entity_dim": 8, "hidden": 16, "num_envs": 4, "rollout_steps": 24, "minibatch_size": 64}
@@ -117,28 +118,64 @@ def test_every_ppo_field_is_listed():
 
 
 @pytest.fixture(scope="module")
-def service_workers(local_ray):
+def service_workers(_ray_session):
+    """Two rollout workers and a learner actor, used by every case of the module."""
     workers = [RolloutWorkerActor.remote(TASK) for _ in range(2)]
-    yield workers
-    for w in workers:
-        ray.kill(w)
+    learner = LearnerActor.remote()
+    yield workers, learner
+    for actor in (*workers, learner):
+        ray.kill(actor)
 
 
-def _service_update(workers: list, ppo: PPOConfig) -> torch.Tensor:
-    """Two updates of a best response to Zoo 1 through the service's actors; the flat parameters."""
+def _service_update(actors: tuple[list, Any], ppo: PPOConfig) -> torch.Tensor:
+    """Two updates of a best response to Zoo 1 through the service's actors; the flat parameters.
+
+    The learner actor is reset with the new spec, as the coordinator's pool does between trainings."""
+    workers, learner = actors
     zoo = tuple(load_zoo("zoo1").spec.members)
     partners = Uniform(tuple(m.name for m in zoo))
     spec = _spec(ppo)
-    learner = LearnerActor.remote(spec)
+    ray.get(learner.reset.remote(spec))
     arch = spec.model_architecture()
     jobs = [
         RolloutJob(11 + i, ppo, ppo.num_envs // 2, TASK.players.num_ctrl, arch, zoo, partners)
         for i in range(len(workers))
     ]
     run_updates(learner, workers, jobs, 2, ppo.rollout_steps)
-    flat = _flat(ray.get(learner.get_weights.remote()))
-    ray.kill(learner)
-    return flat
+    return _flat(ray.get(learner.get_weights.remote()))
+
+
+def _local_update(ppo: PPOConfig) -> torch.Tensor:
+    """The same two updates in this process: plain RolloutWorkers and a Learner, the service's seeds and
+    protocol (job seeds 11 and 12, half the environments each, fragment u's action noise from (job, u))."""
+    zoo = tuple(load_zoo("zoo1").spec.members)
+    partners = Uniform(tuple(m.name for m in zoo))
+    spec = _spec(ppo)
+    torch.set_num_threads(1)  # as the learner actor
+    learner = Learner(spec)
+    num_ctrl = TASK.players.num_ctrl
+    workers = [
+        RolloutWorker(
+            TASK,
+            11 + i,
+            spec.model_architecture(),
+            ppo,
+            partners=[build_policy(m) for m in zoo],
+            num_ctrl=num_ctrl,
+            sampler=as_sampler(partners, TASK.players.num_p - num_ctrl),
+            num_envs=ppo.num_envs // 2,
+        )
+        for i in range(2)
+    ]
+    for u in range(2):
+        weights = learner.get_weights()
+        fragments = []
+        for i, worker in enumerate(workers):
+            worker.set_weights(weights)
+            worker.generator.manual_seed(update_seed(11 + i, u))
+            fragments.append(worker.collect(ppo.rollout_steps))
+        learner.update(tuple(fragments))
+    return _flat(learner.get_weights())
 
 
 @pytest.fixture(scope="module")
@@ -146,14 +183,21 @@ def baseline(service_workers):
     base = ppo_config({**SMALL, "rollout_steps": 48, "lr_schedule": "linear"})
     flat = _service_update(service_workers, base)
     assert torch.equal(_service_update(service_workers, base), flat)  # the service update is deterministic
+    assert torch.equal(_local_update(base), flat)
     return base, flat
 
 
 @pytest.mark.parametrize("name", sorted(CHANGES))
-def test_changing_a_ppo_field_changes_the_service_update(service_workers, baseline, name):
+def test_a_changed_ppo_field_gives_the_service_update_the_local_learner_gets(service_workers, baseline, name):
+    """Every PPO field reaches the service's workers and learner: with the field changed, the service's two
+    updates equal, bit for bit, those of a local Learner given the same change, and differ from the
+    baseline's (so a field the service dropped or took from the preset would fail here)."""
     base, flat = baseline
-    changed = _service_update(service_workers, dataclasses.replace(base, **{name: CHANGES[name]}))
+    ppo = dataclasses.replace(base, **{name: CHANGES[name]})
+    changed = _service_update(service_workers, ppo)
     assert changed.shape != flat.shape or not torch.equal(changed, flat)
+    local = _local_update(ppo)
+    assert changed.shape == local.shape and torch.equal(changed, local)
 
 
 def test_experiment_refuses_ppo_num_envs_that_workers_cannot_split():

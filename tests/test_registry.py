@@ -10,6 +10,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -67,9 +69,27 @@ def test_add_member_generates_an_id_and_reads_back_every_field(registry: Registr
 
 def test_duplicate_id_is_refused_and_the_first_member_kept(registry: Registry) -> None:
     _add(registry, member_id="m1", tags={"first": True})
-    with pytest.raises(RegistryError, match="'m1' is already registered"):
-        _add(registry, member_id="m1")
+    with pytest.raises(RegistryError, match="'m1' is already registered with other tags"):
+        _add(registry, member_id="m1", tags={"first": False})
+    with pytest.raises(RegistryError, match="'m1' is already registered with other generation, sha256"):
+        _add(registry, generation=1, member_id="m1", sha256="ab" * 32, tags={"first": True})
     assert registry.member("m1")["tags"] == {"first": True} and len(registry.members()) == 1
+
+
+def test_registering_a_member_again_with_the_same_fields_is_a_no_op(registry: Registry) -> None:
+    """A replayed add_member (Ray retries a call whose reply was lost) returns the id and changes nothing,
+    also after updates merged metrics into the row and changed its status and MLflow run id."""
+    fields = {"checkpoint": "runs/m.pt", "sha256": "cd" * 32, "metrics": {"train/loss": 0.5}, "member_id": "m2"}
+    _add(registry, member_id="m1")
+    assert _add(registry, parents=("m1",), **fields) == "m2"
+    registry.update_member("m2", metrics={"zoo1/SUC": 40.0}, status="retired", mlflow_run_id="r9")
+    before = registry.member("m2")
+    assert _add(registry, parents=("m1",), **fields) == "m2"
+    assert registry.member("m2") == before and len(registry.members()) == 2
+    with pytest.raises(RegistryError, match="other parents"):
+        _add(registry, **fields)
+    with pytest.raises(RegistryError, match="other metrics"):
+        _add(registry, parents=("m1",), **{**fields, "metrics": {"train/loss": 0.25}})
 
 
 def test_update_member_merges_metrics_and_tags_and_replaces_the_rest(registry: Registry) -> None:
@@ -161,6 +181,20 @@ def test_crossplay_matrix_matches_the_hand_computed_means(played: tuple[Registry
     with pytest.raises(RegistryError, match="metric must be one of"):
         registry.crossplay(metric="WIN")
     assert registry.crossplay(task="4p3e5o").empty
+
+
+def test_a_match_recorded_again_is_the_same_match_and_other_results_are_refused(registry: Registry) -> None:
+    """A match's natural key is (run, generation, team, task, seeds): a replay returns the first id (NaN AST
+    included), the key with other results is an error, and another seed or generation is another match."""
+    nan_ast = _metrics(0.0, ast=math.nan)
+    first = registry.add_match(["a", "b"], TASK, "r", 0, [7], 10, nan_ast)
+    assert registry.add_match(["a", "b"], TASK, "r", 0, [7], 10, {**nan_ast, "extra": 1.0}) == first
+    for episodes, result in ((10, _metrics(10.0, ast=math.nan)), (10, _metrics(0.0, ast=5.0)), (11, nan_ast)):
+        with pytest.raises(RegistryError, match=f"match {first} already records team"):
+            registry.add_match(["a", "b"], TASK, "r", 0, [7], episodes, result)
+    others = [(["b", "a"], 0, [7]), (["a", "b"], 1, [7]), (["a", "b"], 0, [8])]
+    ids = [registry.add_match(team, TASK, "r", g, seeds, 10, nan_ast) for team, g, seeds in others]
+    assert ids == [first + 1, first + 2, first + 3] and len(registry.matches()) == 4
 
 
 def test_add_match_refuses_missing_metrics_and_empty_teams(registry: Registry) -> None:
@@ -715,15 +749,12 @@ def test_list_over_several_registries_skips_an_unreadable_one_with_a_warning(
 
 
 # ---------------------------------------------------------------------- Ray
-@pytest.fixture(scope="module")
-def ray_cluster():
+@pytest.fixture
+def ray_cluster(local_ray):
+    """The session's Ray (tests/conftest.py), as the ray module."""
     import ray
 
-    from atdrone.service.driver import init_ray
-
-    init_ray(None, num_cpus=2)
-    yield ray
-    ray.shutdown()
+    return ray
 
 
 def test_actor_serves_the_registry_and_a_second_driver_finds_it_by_name(ray_cluster, tmp_path: Path) -> None:
@@ -775,5 +806,43 @@ def test_killed_actor_restarts_and_reloads_the_members_from_sqlite(ray_cluster, 
             time.sleep(0.05)
         assert ray.get(actor.members.remote())["id"].tolist() == ids  # the new process reads every member back
         assert ray.get(actor.last_completed_generation.remote("svc")) is None
+    finally:
+        ray.kill(actor, no_restart=True)
+
+
+def _die_after_the_next_commit(registry: Registry) -> None:
+    """In the actor's process: its next write transaction commits, then the process dies before replying."""
+    write = registry._write
+
+    @contextmanager
+    def commit_then_die() -> Iterator[sqlite3.Connection]:
+        with write() as conn:
+            yield conn
+        os._exit(1)
+
+    registry._write = commit_then_die  # type: ignore[method-assign]
+
+
+def test_a_write_replayed_by_ray_after_the_actor_died_is_recorded_once(ray_cluster, tmp_path: Path) -> None:
+    """The actor dies after committing and before replying; Ray restarts it and retries the call (as it does
+    for every call in flight): add_member returns its id, add_match the first match's id, nothing doubles."""
+    from atdrone.registry import registry_actor
+
+    ray = ray_cluster
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the patch travels by value
+    actor = registry_actor(tmp_path / "replay.db", name="registry-replay")
+    try:
+        pid = ray.get(actor.__ray_call__.remote(lambda self: os.getpid()))
+        ray.get(actor.__ray_call__.remote(_die_after_the_next_commit))
+        mid = ray.get(actor.add_member.remote(run="svc", algorithm="sp", generation=0, task=TASK, member_id="sp-g0-0"))
+        assert mid == "sp-g0-0"
+        restarted = ray.get(actor.__ray_call__.remote(lambda self: os.getpid()))
+        assert restarted != pid  # the first attempt's process died: the answer came from the retry
+        ray.get(actor.__ray_call__.remote(_die_after_the_next_commit))
+        match = ray.get(actor.add_match.remote([mid], TASK, "svc", 0, [3], 4, RESULT))
+        assert ray.get(actor.__ray_call__.remote(lambda self: os.getpid())) not in (pid, restarted)
+        with Registry(tmp_path / "replay.db", create=False) as reg:
+            assert reg.members()["id"].tolist() == [mid]
+            assert reg.matches()["id"].tolist() == [match] == [1]
     finally:
         ray.kill(actor, no_restart=True)

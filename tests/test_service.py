@@ -4,10 +4,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
-import signal
-import sqlite3
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -437,80 +433,3 @@ def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path
     assert list(members["algorithm"]) == ["fixed", "fixed"]
     with pytest.raises(ConfigError, match=r"fixed\.colour"):
         _cfg(tmp_path, "fixed_bad", algorithm="fixed", fixed={"colour": "red"})
-
-
-# ------------------------------------------------------------------ exact resume after SIGKILL
-RESUME = {
-    "algorithm": "hola",
-    "generations": 2,
-    "updates_per_generation": 4,
-    "hola": {"pi0_seeds": 1, "pi0_levels": 3, "min_episodes": 4, "max_episodes": 8},
-    "final_zoo": "zoo1",
-    "ppo": {**TINY["ppo"], "rollout_steps": 32},
-}
-
-
-def _rows(run_dir, run: str) -> dict[str, list[dict]]:
-    """The registry's rows without timestamps, MLflow run ids and the run directory."""
-    reg = Registry(run_dir / "registry.db")
-    members = reg.members(run=run).drop(columns=["created", "mlflow_run_id"])
-    members["checkpoint"] = [str(c).replace(str(run_dir), "RUN") for c in members["checkpoint"]]
-    matches = reg.matches(run=run).drop(columns=["created"])
-    generations = reg.generations(run=run).drop(columns=["started", "finished"])
-    frames = {"members": members, "matches": matches, "generations": generations}
-    return {k: json.loads(v.to_json(orient="records")) for k, v in frames.items()}
-
-
-def _matches_of_generation(db, generation: int) -> int:
-    """Matches of ``generation`` in a registry file being written (0 until its tables exist)."""
-    if not db.exists():
-        return 0
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as conn:
-            return conn.execute("SELECT COUNT(*) FROM matches WHERE generation = ?", (generation,)).fetchone()[0]
-    except sqlite3.OperationalError:  # the file exists before its schema does
-        return 0
-
-
-def test_a_run_killed_mid_generation_and_resumed_ends_as_an_uninterrupted_run(local_ray, tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
-    reference = _cfg(tmp_path / "a", "exact_t", **RESUME)
-    run_experiment(reference, tracking_uri=uri, progress=False)
-
-    doc = {**TINY, **RESUME, "name": "exact_t", "out_dir": str(tmp_path / "b")}
-    script = (
-        "import json, sys; from atdrone.service.driver import run_experiment; "
-        "from atdrone.service.experiment import load_experiment; "
-        f"run_experiment(load_experiment(json.loads(sys.argv[1])), tracking_uri={uri!r}, progress=False, num_cpus=2)"
-    )
-    proc = subprocess.Popen([sys.executable, "-c", script, json.dumps(doc)], start_new_session=True)
-    db = tmp_path / "b" / "exact_t" / "registry.db"
-    deadline = time.monotonic() + 240
-    try:  # kill it once generation 1 has played its matches and is training
-        while time.monotonic() < deadline and proc.poll() is None:
-            if _matches_of_generation(db, 1):
-                break
-            time.sleep(0.05)
-        assert proc.poll() is None, "the run ended before it could be killed"
-    finally:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-    run_dir = tmp_path / "b" / "exact_t"
-    saved = json.loads((run_dir / STATE_FILE).read_text())
-    assert saved["coordinator"]["generation"] == 1  # killed inside generation 1
-    assert len(_rows(run_dir, "exact_t")["matches"]) > len(
-        [m for m in _rows(tmp_path / "a" / "exact_t", "exact_t")["matches"] if m["generation"] < 1]
-    )  # it left rows of the unfinished generation behind
-
-    resumed = run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)
-    assert [r.generation for r in resumed["reports"]] == [1]
-    got, want = _rows(run_dir, "exact_t"), _rows(tmp_path / "a" / "exact_t", "exact_t")
-    diff = [
-        (t, i, k, r[k], want[t][i][k]) for t in got for i, r in enumerate(got[t]) for k in r if r[k] != want[t][i][k]
-    ]
-    assert got == want, diff
-    ref_members = Registry(tmp_path / "a" / "exact_t" / "registry.db").members(run="exact_t")
-    for _, m in ref_members.iterrows():
-        assert read_header(run_dir / "members" / f"{m['id']}.pt")["sha256"] == m["sha256"]
-    ref_state = json.loads((tmp_path / "a" / "exact_t" / STATE_FILE).read_text())
-    assert json.loads((run_dir / STATE_FILE).read_text())["coordinator"] == ref_state["coordinator"]

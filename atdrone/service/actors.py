@@ -3,8 +3,11 @@
 A rollout worker actor runs one training job at a time (:meth:`RolloutWorkerActor.start`
 builds a fresh :class:`~atdrone.learn.rollout.RolloutWorker` from the job's seed,
 partners and sampler, so a job repeats exactly wherever and whenever it runs) and plays
-evaluation matches. Every call carries everything it needs, so a worker that dies is
-restarted by Ray and the call redone (max_restarts / max_task_retries). The learner
+evaluation matches. Fragment u of a job draws its action noise from a seed of (job, u)
+and names u and the weights of the updates before it, so a worker that dies is
+restarted by Ray, the call redone, and the job replayed to exactly that fragment (same
+arrays, same partner draws). Restarts are bounded (:data:`WORKER_RESTARTS`): a worker
+that keeps dying fails the generation instead of being retried forever. The learner
 actor is a :class:`~atdrone.learn.learner.Learner`, on a GPU when the actor was given one.
 """
 
@@ -60,7 +63,10 @@ class RolloutJob:
     distribution: PartnerDistribution | None = None
 
 
-@ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=-1)
+WORKER_RESTARTS = 8  # restarts of one rollout worker in a run, and retries of one call, before the run fails
+
+
+@ray.remote(num_cpus=1, max_restarts=WORKER_RESTARTS, max_task_retries=WORKER_RESTARTS)
 class RolloutWorkerActor:
     """Collects fragments for one training job at a time, and plays evaluation matches."""
 
@@ -70,6 +76,7 @@ class RolloutWorkerActor:
         self.policies = PolicyCache()
         self.worker: RolloutWorker | None = None
         self.job: RolloutJob | None = None
+        self.done = 0  # fragments of the job collected by this process
 
     def pid(self) -> int:
         return os.getpid()
@@ -77,6 +84,7 @@ class RolloutWorkerActor:
     def start(self, job: RolloutJob) -> None:
         """Begin a training job: fresh environments, seeded by the job."""
         self.job = job
+        self.done = 0
         sampler = None
         if job.distribution is not None:
             sampler = as_sampler(job.distribution, self.task.players.num_p - job.num_ctrl)
@@ -91,19 +99,61 @@ class RolloutWorkerActor:
             num_envs=job.num_envs,
         )
 
-    def collect(self, job: RolloutJob, weights: dict[str, torch.Tensor], steps: int) -> Fragment:
-        """A fragment of ``steps`` steps of ``job`` (started here when new) with the learner ``weights``.
-
-        Each call names its job, so a restarted worker (Ray retries the call) picks it up again.
-        """
-        if self.worker is None or self.job is None or job.seed != self.job.seed:  # a job is known by its seed
-            self.start(job)
-        assert self.worker is not None
+    def _next(self, weights: dict[str, torch.Tensor], steps: int) -> Fragment:
+        """The job's next fragment: its update index seeds the learners' action noise."""
+        assert self.worker is not None and self.job is not None
         self.worker.set_weights(weights)
+        self.worker.generator.manual_seed(update_seed(self.job.seed, self.done))
+        self.done += 1
         return self.worker.collect(steps)
 
-    def drawn(self) -> dict[str, int]:
-        """Partner profiles of the current job's finished episodes, as drawn."""
+    def _reach(self, job: RolloutJob, update: int, earlier: Sequence[Any], steps: int) -> None:
+        """Be at fragment ``update`` of ``job``: where this process is, else replayed from the job's start.
+
+        A restarted worker (or one that ran another job since) starts the job afresh and
+        collects fragments 0 .. update-1 again with their learner weights (``earlier``,
+        object refs), so the environments, the partner draws and :meth:`drawn` are exactly
+        where the dead worker left them.
+        """
+        if update and self.job is not None and self.job.seed == job.seed and self.done == update:  # known by its seed
+            return
+        if len(earlier) != update:
+            raise ValueError(f"fragment {update} of a job needs the weights of its {update} earlier updates")
+        self.start(job)
+        for weights in earlier:
+            self._next(ray.get(weights), steps)
+
+    def collect(
+        self,
+        job: RolloutJob,
+        weights: dict[str, torch.Tensor],
+        steps: int,
+        update: int | None = None,
+        earlier: Sequence[Any] = (),
+    ) -> Fragment:
+        """Fragment ``update`` (0, 1, ...) of ``job``: ``steps`` steps with the learner ``weights``.
+
+        ``earlier``: the refs of the weights of the job's updates before ``update``, so a
+        restarted worker (Ray retries the call on it) replays the job up to this fragment
+        and returns exactly the fragment the dead one would have (:meth:`_reach`).
+        Without ``update``: the next fragment of the current job, a new job started afresh
+        (no replay).
+        """
+        if update is None:
+            if self.job is None or job.seed != self.job.seed:
+                self.start(job)
+        else:
+            self._reach(job, update, earlier, steps)
+        return self._next(weights, steps)
+
+    def drawn(self, job: RolloutJob | None = None, earlier: Sequence[Any] = (), steps: int = 0) -> dict[str, int]:
+        """Partner profiles of the job's episodes started so far, as drawn.
+
+        With ``job``: after its fragments with the weights ``earlier`` (replayed when this
+        worker was restarted since, as in :meth:`collect`); without: the current job's.
+        """
+        if job is not None:
+            self._reach(job, len(earlier), earlier, steps)
         return dict(self.worker.drawn) if self.worker is not None else {}
 
     def evaluate(self, learner: MemberSpec, profile: Sequence[MemberSpec], episodes: int, seed: int) -> dict[str, Any]:
@@ -132,9 +182,19 @@ class RolloutWorkerActor:
 
 @ray.remote(num_cpus=0, max_restarts=0)
 class LearnerActor:
-    """A :class:`~atdrone.learn.learner.Learner` behind Ray: the same object as the local trainer's."""
+    """A :class:`~atdrone.learn.learner.Learner` behind Ray: the same object as the local trainer's.
 
-    def __init__(self, spec: LearnerSpec, threads: int = 1) -> None:
+    One actor serves one training after another (:meth:`reset` with the next spec), so a
+    run pays for starting a process that imports torch once, not once per learner.
+    """
+
+    def __init__(self, spec: LearnerSpec | None = None, threads: int = 1) -> None:
+        self.learner: Learner
+        if spec is not None:
+            self.reset(spec, threads)
+
+    def reset(self, spec: LearnerSpec, threads: int = 1) -> None:
+        """A fresh learner of ``spec``: what a new actor made with it would hold."""
         torch.set_num_threads(threads)  # the rollout workers are idle while a learner updates
         self.learner = Learner(spec)
 
@@ -162,6 +222,11 @@ class LearnerActor:
         return save_checkpoint(path, self.learner.model, header)
 
 
+def update_seed(job_seed: int, update: int) -> int:
+    """The seed of the learners' action noise in fragment ``update`` of the job seeded ``job_seed``."""
+    return int(np.random.SeedSequence([int(job_seed), int(update)]).generate_state(1)[0])
+
+
 def run_updates(
     learner: Any,
     workers: Sequence[Any],
@@ -169,24 +234,29 @@ def run_updates(
     updates: int,
     steps: int,
     on_update: Callable[[int], None] | None = None,
-) -> list[dict[str, float]]:
+) -> tuple[list[dict[str, float]], list[dict[str, int]]]:
     """``updates`` learner updates, each on one fragment of ``steps`` steps per worker (worker i runs jobs[i]).
 
-    Each worker starts its job afresh first, so the same jobs give the same fragments.
-    ``on_update(n)`` is called after the n-th update (progress).
+    Returns the updates' statistics and each worker's partner draws. Each job starts
+    afresh, so the same jobs give the same fragments; fragment u of a job is named by u
+    and carries the weights of the updates before it, so a worker restarted mid-job
+    replays it to exactly where it was (:meth:`RolloutWorkerActor.collect`). ``on_update(n)``
+    is called after the n-th update (progress).
 
     The weights go out once per update as one object ref shared by every worker; the
     fragments go to the learner as refs, joined in worker order.
     """
-    ray.get([w.start.remote(job) for w, job in zip(workers, jobs, strict=True)])  # fresh environments per job
-    history = []
-    for _ in range(updates):
+    history: list[dict[str, float]] = []
+    sent: list[Any] = []  # the weights of every update so far (refs, kept for replays)
+    for u in range(updates):
         t0 = time.perf_counter()
         weights = learner.get_weights.remote()
-        fragments = [w.collect.remote(job, weights, steps) for w, job in zip(workers, jobs, strict=True)]
+        fragments = [w.collect.remote(job, weights, steps, u, sent) for w, job in zip(workers, jobs, strict=True)]
+        sent.append(weights)
         stats = ray.get(learner.update.remote(*fragments))
         stats["perf/pursuer_steps_per_s"] = stats["train/samples"] / (time.perf_counter() - t0)
         history.append(stats)
         if on_update is not None:
             on_update(len(history))
-    return history
+    drawn = ray.get([w.drawn.remote(job, sent, steps) for w, job in zip(workers, jobs, strict=True)])
+    return history, drawn

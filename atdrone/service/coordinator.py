@@ -4,10 +4,12 @@ The algorithm (a class of :data:`atdrone.population.ALGORITHMS`) decides what a
 generation does; the coordinator does it (:class:`atdrone.population.base.Oracle`):
 
 - ``evaluate(teams)``: play each team on the rollout workers and record the matches;
-- ``train(start_from, partners, hparams)``: a learner actor from a member's weights,
-  updated ``updates_per_generation`` times on fragments the workers collect with
-  partners drawn from ``partners`` per environment and per episode;
-- ``register(trained, parents)``: the learner's checkpoint and registry row;
+- ``train(start_from, partners, hparams)``: a learner (an actor of the run's pool, reset
+  to the new spec) from a member's weights, updated ``updates_per_generation`` times on
+  fragments the workers collect with partners drawn from ``partners`` per environment
+  and per episode;
+- ``register(trained, parents)``: the learner's checkpoint and registry row (the learner
+  actor goes back to the pool);
 - ``retire(members)``.
 
 Every random draw of generation g comes from seeds derived from (experiment seed, g,
@@ -84,7 +86,11 @@ class Coordinator:
         if "algorithm" in state:
             self.algorithm.load_state(state["algorithm"])
         self.zoo_specs: dict[str, MemberSpec] = {}
+        self._idle_learners: list[Any] = []  # learner actors between trainings (a pool: one process, many learners)
         self._begin(self.generation)
+
+    def _new_learner(self) -> Any:
+        return LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote()
 
     def _begin(self, generation: int) -> None:
         """Counters and the generator of a generation, all derived from (seed, generation)."""
@@ -179,7 +185,8 @@ class Coordinator:
             total_updates=updates,
             architecture=self.architecture,
         )
-        learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote(spec, self.cfg.learner_threads)
+        learner = self._idle_learners.pop() if self._idle_learners else self._new_learner()
+        ray.get(learner.reset.remote(spec, self.cfg.learner_threads))
         if start_from is not None:
             model, _ = load_checkpoint(self.checkpoint_path(start_from))
             ray.get(learner.set_weights.remote(model.state_dict()))
@@ -196,13 +203,13 @@ class Coordinator:
         def report(done: int) -> None:
             self._progress = f"train: learner {index + 1}, update {done}/{updates}"
 
-        history = run_updates(learner, self.workers, jobs, updates, self.ppo.rollout_steps, on_update=report)
+        history, draws = run_updates(learner, self.workers, jobs, updates, self.ppo.rollout_steps, on_update=report)
         env_steps = updates * envs * len(self.workers) * self.ppo.rollout_steps
         samples = int(sum(h["train/samples"] for h in history))
         self.budget["env_steps"] += env_steps
         self.budget["learner_samples"] += samples
         drawn: Counter[str] = Counter()
-        for counts in ray.get([w.drawn.remote() for w in self.workers]):
+        for counts in draws:
             drawn.update(counts)
         return Trained(
             start_from=start_from,
@@ -239,7 +246,7 @@ class Coordinator:
             "tags": tags,
         }
         full = ray.get(trained.handle.save.remote(str(path), header))
-        ray.kill(trained.handle)
+        self._idle_learners.append(trained.handle)  # the next training resets it
         ray.get(
             self.registry.add_member.remote(
                 run=self.run,

@@ -1,19 +1,35 @@
 """The driver of a population training run: Ray, the registry actor, the coordinator, MLflow.
 
 ``run_experiment`` starts (or joins, with ``address``) a Ray cluster, serves the run's
-registry (``<out_dir>/<name>/registry.db``) from a named actor in namespace
-``atdrone``, creates the coordinator and asks it for one generation after another.
-After each generation it writes ``service_state.json`` (atomically) and logs the
-generation to MLflow as a nested run under the job's parent run, with a nested run
-per learner. ``resume=True`` continues from the last completed generation.
+registry (``<out_dir>/<name>/registry.db``, or under ``$ATDRONE_REGISTRY_DIR``) from a
+named actor in namespace ``atdrone`` on the driver's node, creates the coordinator and
+asks it for one generation after another. After each generation it logs the generation
+to MLflow as a nested run under the job's parent run, with a nested run per learner,
+then writes ``service_state.json`` (atomically). ``resume=True`` continues from the
+last completed generation.
+
+Faults. A kill at any point (SIGKILL of the driver, a node lost) is resumed exactly:
+the registry's writes are idempotent and a resume discards the rows of the generation
+it repeats; checkpoints are renamed into place; what a dead attempt logged to MLflow
+of a generation it never saved is deleted (its nested runs carry the attempt's id and
+the generation; ``"logged"`` in the state says how far MLflow is complete) and the
+parent's curves get one point per step; the best member's model version is found
+before one is made; a finished run's parent left RUNNING is ended. SIGTERM is handled
+as Ctrl-C: the MLflow runs end KILLED.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
+import signal
+import threading
 import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -114,7 +130,37 @@ def run_experiment(
     (:data:`RESUME_MAY_CHANGE` aside) is refused. ``stop_after``: stop once this many
     generations are complete (for tests of resume).
     """
+    with _sigterm_as_interrupt():
+        return _run(cfg, address, resume, tracking_uri, progress, num_cpus, stop_after)
 
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (``ray job stop``, a scheduler's stop) raises KeyboardInterrupt, as Ctrl-C does, so the run's
+    MLflow records end KILLED and its actors are released; the previous handler comes back afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run(
+    cfg: ExperimentConfig,
+    address: str | None,
+    resume: bool,
+    tracking_uri: str | None,
+    progress: bool,
+    num_cpus: int | None,
+    stop_after: int | None,
+) -> dict[str, Any]:
     import ray
 
     from atdrone.population import ALGORITHMS
@@ -129,16 +175,23 @@ def run_experiment(
             refuse_existing(run_dir)
         saved = read_json(state_path, "service state")
         check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
-        done = _completed(run_dir, saved, cfg)
+        done = _completed(run_dir, saved, cfg, tracking_uri)
         if done is not None:
             return done
     elif resume and (run_dir / "config.json").exists():
         check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
+    db = registry_path(cfg, run_dir)
+    if saved.get("registry", str(db)) != str(db):
+        raise RunError(
+            f"{run_dir} keeps its registry at {saved['registry']}, not {db}: resume with the same "
+            f"{REGISTRY_DIR_ENV} (or --registry-dir)"
+        )
     run_dir.mkdir(parents=True, exist_ok=True)
     _write_json(run_dir / "config.json", cfg.to_dict())
     init_ray(address, num_cpus)
     check_schedulable(cfg, wait_s=60.0 if (address or os.environ.get("RAY_ADDRESS")) else 0.0)
-    registry = registry_actor(run_dir / "registry.db", name=registry_name(cfg.name))
+    # on the driver's node: the sqlite file (WAL) needs a local disk, which network file systems are not
+    registry = registry_actor(db, name=registry_name(cfg.name), node=ray.get_runtime_context().get_node_id())
     start = saved.get("coordinator", {}).get("generation", 0)
     ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
     coordinator = Coordinator.options(max_concurrency=2).remote(  # the 2nd thread answers progress()
@@ -151,12 +204,28 @@ def run_experiment(
 
 
 SUMMARY_FILE = "summary.json"
+REGISTRY_DIR_ENV = "ATDRONE_REGISTRY_DIR"
 
 
-def _completed(run_dir: Path, saved: dict[str, Any], cfg: ExperimentConfig) -> dict[str, Any] | None:
-    """The summary of a run that already finished all ``cfg.generations`` (resumed again: nothing to do)."""
+def registry_path(cfg: ExperimentConfig, run_dir: Path) -> Path:
+    """The run's registry file: ``$ATDRONE_REGISTRY_DIR/<name>/registry.db`` when set (a cluster: a local disk
+    of the driver's node, as sqlite's WAL needs), else ``<run_dir>/registry.db``."""
+    folder = os.environ.get(REGISTRY_DIR_ENV)
+    return (Path(folder).resolve() / cfg.name if folder else run_dir) / "registry.db"
+
+
+def _completed(
+    run_dir: Path, saved: dict[str, Any], cfg: ExperimentConfig, tracking_uri: str | None
+) -> dict[str, Any] | None:
+    """The summary of a run that already finished all ``cfg.generations`` (resumed again: nothing to do but
+    end its MLflow parent run, when a kill came after the summary and before the run's end)."""
     if saved.get("coordinator", {}).get("generation", 0) < cfg.generations or not (run_dir / SUMMARY_FILE).exists():
         return None
+    if saved.get("mlflow_run_id"):
+        from atdrone.tracking import Tracker
+
+        if Tracker(tracking_uri).end_run_if_running(saved["mlflow_run_id"]):
+            log.info("ended the finished run's MLflow run %s, left RUNNING by a kill", saved["mlflow_run_id"])
     summary = read_json(run_dir / SUMMARY_FILE, "run summary")
     summary["population"] = pd.read_csv(run_dir / "population.csv")
     summary.update({"run_dir": str(run_dir), "mlflow_run_id": saved.get("mlflow_run_id"), "reports": []})
@@ -184,14 +253,19 @@ def _generations(
     tracker = Tracker(tracking_uri)
     reports: list[GenerationReport] = []
     experiment = cfg.experiment or cfg.name
-    run_tag = {"atdrone.run": cfg.name}
+    start = saved.get("coordinator", {}).get("generation", 0)
+    tags = run_tags(cfg, run_dir)
+    attempt = {**tags, "atdrone.attempt": uuid.uuid4().hex}  # this driver's nested runs
     name = f"{cfg.name}-{cfg.algorithm}"
-    with tracker.run(experiment, name, run_id=saved.get("mlflow_run_id"), tags=run_tag) as run_id:
-        killed = tracker.end_stale_runs(experiment, run_tag, keep=run_id)  # a dead attempt's nested runs
-        if killed:
-            log.info("ended %d MLflow runs of an interrupted attempt as KILLED", len(killed))
+    with tracker.run(experiment, name, run_id=saved.get("mlflow_run_id"), tags=tags) as run_id:
+        # what a dead attempt logged of generations it never saved: they are trained and logged again
+        forgotten = tracker.forget_runs(experiment, tags, "atdrone.generation", saved.get("logged", start), run_id)
+        killed = tracker.end_stale_runs(experiment, tags, keep=run_id)  # nested runs of an older layout
+        if forgotten or killed:
+            log.info("removed %d, ended %d MLflow runs of an interrupted attempt", len(forgotten), len(killed))
         if "mlflow_run_id" not in saved:  # from now on a rerun without --resume is refused
-            _write_json(state_path, {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id})
+            state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": start}
+            _write_json(state_path, {**state, "registry": str(registry_path(cfg, run_dir))})
         tracker.log_params({"experiment": cfg.to_dict()})
         labels = ALGORITHMS[cfg.algorithm].result_tags(cfg.algorithm_config())  # e.g. a best response
         tracker.set_tags(
@@ -202,14 +276,14 @@ def _generations(
             }
         )
         tracker.log_artifact(run_dir / "config.json")
-        start = saved.get("coordinator", {}).get("generation", 0)
         for g in range(start, cfg.generations):
             t0 = time.perf_counter()
             report = _await_generation(coordinator, cfg.name, g, progress)
             reports.append(report)
-            _log_generation(tracker, report, run_dir, registry, cfg, run_id)
-            state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id}
-            _write_json(state_path, state)
+            _log_generation(tracker, report, run_dir, registry, cfg, run_id, attempt)
+            # the generation is saved and logged ("logged": MLflow holds generations 0 .. logged - 1)
+            state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": g + 1}
+            _write_json(state_path, {**state, "registry": str(registry_path(cfg, run_dir))})
             if progress:
                 learners = ", ".join(report.learners)
                 print(
@@ -264,19 +338,34 @@ def _release(coordinator: Any, registry: Any, name: str, timeout_s: float = 30.0
         time.sleep(0.1)
 
 
+def run_tags(cfg: ExperimentConfig, run_dir: Path) -> dict[str, str]:
+    """The MLflow tags of a run's records: its name, and a key of its run directory (two runs of one name in two
+    out dirs are two runs)."""
+    key = hashlib.sha256(str(run_dir.resolve()).encode()).hexdigest()[:16]
+    return {"atdrone.run": cfg.name, "atdrone.run_dir": key}
+
+
 def _log_generation(
-    tracker: Any, report: GenerationReport, run_dir: Path, registry: Any, cfg: ExperimentConfig, parent: str
+    tracker: Any,
+    report: GenerationReport,
+    run_dir: Path,
+    registry: Any,
+    cfg: ExperimentConfig,
+    parent: str,
+    tags: dict[str, str],
 ) -> None:
     """A generation as a nested MLflow run (metrics, documents, figures, a nested run per learner) and a
-    point on the parent run's curves (:func:`_generation_curves`)."""
+    point on the parent run's curves (:func:`_generation_curves`; once: a resumed generation does not add a
+    second point). The nested runs carry ``tags`` (the attempt's) and the generation index."""
     import ray
 
     from atdrone.population import ALGORITHMS
 
     g = report.generation
     gen_dir = run_dir / "generations" / f"{g:03d}"
-    tracker.log_metrics(_generation_curves(report, registry, cfg), step=g, run_id=parent)
-    with tracker.run(cfg.name, f"generation-{g}", nested=True, tags={"atdrone.run": cfg.name}):
+    tags = {**tags, "atdrone.generation": str(g)}
+    tracker.log_metrics(_generation_curves(report, registry, cfg), step=g, run_id=parent, once=True)
+    with tracker.run(cfg.name, f"generation-{g}", nested=True, tags=tags):
         metrics = {"pop/size": len(report.population), "perf/generation_s": report.wall_s, **report.metrics}
         metrics.update({f"budget/{k}": float(v) for k, v in report.budget.items()})
         if report.matches:
@@ -298,8 +387,7 @@ def _log_generation(
             crossplay_heatmap(table, gen_dir / "crossplay.png", title=f"{cfg.name} cross-play SUC, generation {g}")
             tracker.log_artifact(gen_dir / "crossplay.png")
         for t in report.training:
-            with tracker.run(cfg.name, f"learner-{t.member}", nested=True, tags={"atdrone.run": cfg.name}):
-                tracker.set_tags({"atdrone.member": t.member, "atdrone.generation": str(g)})
+            with tracker.run(cfg.name, f"learner-{t.member}", nested=True, tags={**tags, "atdrone.member": t.member}):
                 tracker.log_dict(
                     {"parent": t.parent, "seed": t.seed, "partners": t.partners, "drawn": t.drawn}, "training.json"
                 )
@@ -360,7 +448,8 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
     tracker.log_artifact(run_dir / "population.csv")
     suc = f"{cfg.final_zoo}_SUC"
     if results:
-        tracker.log_metrics({f"eval/{cfg.final_zoo}/best_SUC": float(table[suc].max())}, step=cfg.generations)
+        best_suc = {f"eval/{cfg.final_zoo}/best_SUC": float(table[suc].max())}
+        tracker.log_metrics(best_suc, step=cfg.generations, once=True)
         best = str(table.loc[table[suc].idxmax(), "member"])
     else:
         best = state["population"][-1]
@@ -416,7 +505,7 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
             table,
             f"best member: {summary['best']}; run directory: {summary['run_dir']}",
             "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
-            f"registry: atdrone registry --db {summary['run_dir']}/registry.db list",
+            f"registry: atdrone registry --db {registry_path(cfg, Path(summary['run_dir']))} list",
             f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion)",
             f"MLflow: experiment {cfg.experiment or cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
             f"browse with: mlflow ui --backend-store-uri {tracking_uri}",

@@ -155,6 +155,8 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
 def _check_settings(cfg: ExperimentConfig) -> None:
     """The shared settings that need no file: run name, seed, bounds."""
     check_run_name(cfg.name)
+    if cfg.experiment:  # the MLflow experiment and model name: the same rule (no quote reaches a filter string)
+        check_run_name(cfg.experiment, "experiment")
     check_seed(cfg.seed)
     require_at_least(cfg, POSITIVE_INTS)
     require_at_most(cfg, LIMITS)

@@ -1,0 +1,272 @@
+"""Faults injected into the service: a rollout worker killed mid-collect, the driver SIGKILLed at every step
+of a generation's bookkeeping. After each, what the run produced equals what an uninterrupted run produces."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import mlflow
+import numpy as np
+import pytest
+import ray
+
+from atdrone.config import load_task
+from atdrone.learn.learner import Learner, LearnerSpec
+from atdrone.learn.ppo import ppo_config
+from atdrone.policies.zoo import MemberSpec
+from atdrone.registry import Registry
+from atdrone.service.actors import RolloutJob, RolloutWorkerActor
+from atdrone.service.driver import run_experiment
+from atdrone.service.experiment import load_experiment
+from atdrone.teams.partners import Uniform
+
+TASK = load_task("4p2e1o")
+
+
+# ------------------------------------------------------------------ a rollout worker killed mid-collect
+def _job() -> tuple[RolloutJob, list[Any]]:
+    """A job against a greedy and a Vicsek drone (drawn per slot and episode) and 5 updates' distinct weights."""
+    ppo = ppo_config({"entity_dim": 8, "hidden": 16, "num_envs": 8, "rollout_steps": 192, "minibatch_size": 64})
+    zoo = (MemberSpec("greedy", "greedy"), MemberSpec("vicsek", "vicsek"))
+    specs = [LearnerSpec(ppo=ppo, num_e=2, num_p=4, seed=s, total_updates=5) for s in range(5)]
+    weights = [ray.put(Learner(spec).get_weights()) for spec in specs]
+    arch = Learner(specs[0]).model.architecture()
+    job = RolloutJob(1234, ppo, 4, TASK.players.num_ctrl, arch, zoo, Uniform(tuple(m.name for m in zoo)))
+    return job, weights
+
+
+def _collect(worker: Any, job: RolloutJob, weights: list[Any], u: int) -> Any:
+    return worker.collect.remote(job, weights[u], job.ppo.rollout_steps, u, weights[:u])
+
+
+def _same_fragment(a: Any, b: Any) -> None:
+    for name in ("obs", "u", "logp", "values", "rewards", "dones", "last_values"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.episodes == b.episodes
+    assert a.extras.keys() == b.extras.keys()
+    for name in a.extras:
+        np.testing.assert_array_equal(a.extras[name], b.extras[name], err_msg=name)
+
+
+def test_a_worker_killed_mid_collect_returns_the_fragments_and_draws_of_an_uninterrupted_one(local_ray):
+    """Worker B is killed while it collects fragment 2 (a pid probe queued behind the collect goes
+    unanswered, and is later answered by the restarted process), and again idle before fragment 4. Ray
+    restarts it and retries the call; the job replays from its start, so every fragment (arrays, finished
+    episodes and their partners) and the partner draws equal those of worker A, never interrupted."""
+    job, weights = _job()
+    a, b = RolloutWorkerActor.remote(TASK), RolloutWorkerActor.remote(TASK)
+    try:
+        want = [ray.get(_collect(a, job, weights, u)) for u in range(5)]
+        want_drawn = ray.get(a.drawn.remote(job, weights, job.ppo.rollout_steps))
+        assert sum(want_drawn.values()) > job.num_envs  # episodes ended and new partners were drawn
+        assert {p for profile in want_drawn for p in profile.split("|")} == {"greedy", "vicsek"}
+
+        got = [ray.get(_collect(b, job, weights, u)) for u in range(2)]
+        first_pid = ray.get(b.pid.remote())
+        pending = _collect(b, job, weights, 2)
+        deadline = time.monotonic() + 60
+        while True:  # the collect has begun once a probe sent after it waits
+            probe = b.pid.remote()
+            if not ray.wait([probe], timeout=0.3)[0]:
+                break
+            assert time.monotonic() < deadline, "the collect never seemed to run"
+        ray.kill(b, no_restart=False)
+        got.append(ray.get(pending, timeout=120))
+        second_pid = ray.get(probe, timeout=60)
+        assert second_pid != first_pid  # the probe was answered by the restarted worker: the kill hit the collect
+        got.append(ray.get(_collect(b, job, weights, 3)))
+        ray.kill(b, no_restart=False)  # idle this time: fragment 4 starts on a fresh process
+        got.append(ray.get(_collect(b, job, weights, 4), timeout=120))
+        assert ray.get(b.pid.remote()) not in (first_pid, second_pid)
+        for u, (g, w) in enumerate(zip(got, want, strict=True)):
+            try:
+                _same_fragment(g, w)
+            except AssertionError as exc:
+                pytest.fail(f"fragment {u}: {exc}")
+        assert ray.get(b.drawn.remote(job, weights, job.ppo.rollout_steps)) == want_drawn
+    finally:
+        ray.kill(a)
+        ray.kill(b, no_restart=True)
+
+
+def test_a_fresh_worker_replays_a_job_to_the_fragment_it_is_asked_for(local_ray):
+    """Fragment 3 asked of a worker that never saw the job equals the fragment 3 of a worker that collected 0-2;
+    asked without the earlier weights it is refused (it could not be the same fragment)."""
+    job, weights = _job()
+    a, b = RolloutWorkerActor.remote(TASK), RolloutWorkerActor.remote(TASK)
+    try:
+        for u in range(3):
+            ray.get(_collect(a, job, weights, u))
+        _same_fragment(ray.get(_collect(b, job, weights, 3)), ray.get(_collect(a, job, weights, 3)))
+        with pytest.raises(ray.exceptions.RayTaskError, match="needs the weights of its 3 earlier updates"):
+            ray.get(b.collect.remote(job, weights[3], job.ppo.rollout_steps, 3, []))
+    finally:
+        ray.kill(a)
+        ray.kill(b)
+
+
+# ------------------------------------------------------------------ the driver SIGKILLed at every step
+REPO = Path(__file__).resolve().parents[1]
+FAULTY = {
+    "task": "4p2e1o",
+    "algorithm": "hola",
+    "generations": 2,
+    "updates_per_generation": 2,
+    "num_workers": 1,
+    "eval_episodes": 4,
+    "final_zoo": "zoo1",
+    "final_episodes": 4,
+    "gif": False,
+    "hola": {"pi0_seeds": 1, "pi0_levels": 2, "min_episodes": 4, "max_episodes": 8},
+    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 4, "rollout_steps": 16},
+}
+# (side, target, when, nth, generation saved after the kill) in the order a run meets them; each kill is
+# resumed by the next entry's driver
+KILLS = [
+    ("coordinator", "add_member", "before", 1, 0),  # generation 0: the first checkpoint written, its row not
+    ("coordinator", "finish_generation", "after", 1, 0),  # generation 0 complete in the registry, nothing logged
+    ("driver", "update_member", "after", 1, 0),  # generation 0 half logged: a learner's nested run RUNNING
+    ("driver", "file:service_state.json", "before", 1, 0),  # generation 0 fully logged, not saved
+    ("coordinator", "add_match", "after", 1, 1),  # generation 1: its first match recorded
+    ("driver", "tracker.log_metrics", "after", 1, 1),  # generation 1's point on the parent's curves logged
+    ("driver", "tracker.log_dict", "after", 1, 1),  # generation 1's learner run begun
+    ("driver", "file:service_state.json", "after", 1, 2),  # generation 1 saved and logged
+    ("driver", "tracker.register_checkpoint", "after", 1, 2),  # the best member registered, no summary yet
+    ("driver", "file:summary.json", "after", 1, 2),  # the summary written, the parent run still RUNNING
+]
+
+
+def _mlflow_record(uri: str, experiment: str) -> dict[str, Any]:
+    """Every (undeleted) run by name: status, parent's name, member tag, metric points; and the model versions.
+
+    Timings (perf/...) are compared by their steps only."""
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    ident = client.get_experiment_by_name(experiment).experiment_id
+    runs = client.search_runs([ident], max_results=1000)
+    names = {r.info.run_id: r.info.run_name for r in runs}
+    record: dict[str, Any] = {}
+    for r in runs:
+        points = {}
+        for key in r.data.metrics:
+            history = sorted((m.step, m.value) for m in client.get_metric_history(r.info.run_id, key))
+            points[key] = [s for s, _ in history] if key.startswith("perf/") else history
+        assert r.info.run_name not in record, f"two runs named {r.info.run_name}"
+        record[r.info.run_name] = {
+            "status": r.info.status,
+            "parent": names.get(r.data.tags.get("mlflow.parentRunId", "")),
+            "member": r.data.tags.get("atdrone.member"),
+            "generation": r.data.tags.get("atdrone.generation"),
+            "metrics": points,
+            "artifacts": sorted(a.path for a in client.list_artifacts(r.info.run_id)),
+        }
+    versions = client.search_model_versions(f"name = 'atdrone-{experiment}'")
+    record["versions"] = sorted(
+        (v.version, v.tags.get("member"), v.tags.get("score"), names[v.run_id]) for v in versions
+    )
+    champion = client.get_model_version_by_alias(f"atdrone-{experiment}", "champion")
+    record["champion"] = champion.tags["member"]
+    return record
+
+
+def _run_state(run_dir: Path) -> dict[str, Any]:
+    """The registry rows (timestamps and MLflow ids aside), checkpoint digests, the state and summary files."""
+    from atdrone.models.checkpoint import read_header
+
+    reg = Registry(run_dir / "registry.db", create=False)
+    members = reg.members().drop(columns=["created", "mlflow_run_id"])
+    members["checkpoint"] = [Path(c).relative_to(run_dir).as_posix() for c in members["checkpoint"]]
+    frames = {
+        "members": members,
+        "matches": reg.matches().drop(columns=["created"]),
+        "generations": reg.generations().drop(columns=["started", "finished"]),
+    }
+    state = {k: json.loads(v.to_json(orient="records")) for k, v in frames.items()}
+    state["files"] = {p.name: read_header(p)["sha256"] for p in sorted((run_dir / "members").glob("*.pt"))}
+    saved = json.loads((run_dir / "service_state.json").read_text())
+    assert saved["registry"] == str(run_dir / "registry.db")
+    state["state"] = {k: v for k, v in saved.items() if k not in ("mlflow_run_id", "registry")}
+    state["summary"] = json.loads((run_dir / "summary.json").read_text())
+    state["population"] = (run_dir / "population.csv").read_text()
+    reg.close()
+    return state
+
+
+def _wait_for_the_dead_drivers_actors(name: str) -> None:
+    """A killed driver's actors (its registry actor, by name) go once Ray sees the driver gone."""
+    from atdrone.registry import REGISTRY_NAMESPACE
+
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            ray.get_actor(f"registry-{name}", namespace=REGISTRY_NAMESPACE)
+        except ValueError:
+            return
+        time.sleep(0.1)
+    pytest.fail(f"the killed driver's registry actor registry-{name} is still alive")
+
+
+def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uninterrupted_run(local_ray, tmp_path):
+    """One run is SIGKILLed at ten points of its life, each resumed by the next driver (joined to the same
+    Ray): before and after registry writes of the coordinator and the driver, inside the MLflow logging of
+    a generation, around the state file, after the model registration and after the summary. The last
+    resume completes it. Registry, checkpoints, state, MLflow runs (names, statuses, parents, metric
+    points, artifacts) and model versions equal those of an uninterrupted run of the same config."""
+    reference_uri, faulty_uri = f"sqlite:///{tmp_path}/ref.db", f"sqlite:///{tmp_path}/faulty.db"
+    doc = {**FAULTY, "name": "faults_t"}
+    run_experiment(
+        load_experiment({**doc, "out_dir": str(tmp_path / "ref")}), tracking_uri=reference_uri, progress=False
+    )
+    want = _run_state(tmp_path / "ref" / "faults_t")
+    want_mlflow = _mlflow_record(reference_uri, "faults_t")
+
+    run_dir = tmp_path / "faulty" / "faults_t"
+    faulty = {**doc, "out_dir": str(tmp_path / "faulty")}
+    server = subprocess.Popen(
+        [sys.executable, str(REPO / "tests" / "fault_driver.py"), "--serve"],
+        cwd=REPO,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert server.stdin is not None and server.stdout is not None
+    try:
+        for side, target, when, nth, generation in KILLS:
+            spec = {"doc": faulty, "uri": faulty_uri, "address": local_ray, "side": side, "target": target}
+            server.stdin.write(json.dumps({**spec, "when": when, "nth": nth}) + "\n")
+            server.stdin.flush()
+            status = int(server.stdout.readline())
+            assert status == -signal.SIGKILL, f"{side} {target} {when} #{nth}: exit {status}, not killed there"
+            saved = json.loads((run_dir / "service_state.json").read_text())
+            assert saved["coordinator"]["generation"] == saved["logged"] == generation, (target, saved)
+            _wait_for_the_dead_drivers_actors("faults_t")
+            if target == "add_member":  # a killed run is continued only when asked to
+                with pytest.raises(FileExistsError, match="--resume"):
+                    run_experiment(load_experiment(faulty), tracking_uri=faulty_uri, progress=False)
+    finally:
+        server.stdin.close()
+        server.wait(timeout=60)
+    client = mlflow.MlflowClient(tracking_uri=faulty_uri)
+    assert client.get_run(saved["mlflow_run_id"]).info.status == "RUNNING"  # killed before the run's end
+
+    summary = run_experiment(load_experiment(faulty), tracking_uri=faulty_uri, resume=True, progress=False)
+    assert summary["complete"]
+    got = _run_state(run_dir)
+    for part in want:
+        assert got[part] == want[part], part
+    got_mlflow = _mlflow_record(faulty_uri, "faults_t")
+    assert sorted(got_mlflow) == sorted(want_mlflow)
+    for name in want_mlflow:
+        assert got_mlflow[name] == want_mlflow[name], name
+    # the registry names each learner's live MLflow run
+    runs = {
+        r.info.run_id: r.info.run_name
+        for r in client.search_runs([client.get_experiment_by_name("faults_t").experiment_id])
+    }
+    for _, m in Registry(run_dir / "registry.db", create=False).members().iterrows():
+        assert runs[m["mlflow_run_id"]] == f"learner-{m['id']}"
