@@ -111,9 +111,10 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:  # a run that exists, a damaged state file, a cluster that cannot place it, ...
         print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
         return EXIT_USAGE
-    from atdrone.tracking import tracking_uri
+    from atdrone.tracking import tracking_uri, ui_hint
 
     print(format_summary(cfg, summary, tracking_uri(args.tracking_uri)))
+    print(ui_hint(cfg.experiment or cfg.name, args.tracking_uri))  # an absolute store: a job's folder is temporary
     print(f"{PROG}: done")
     return 0
 

@@ -130,7 +130,7 @@ def test_the_service_refuses_to_resume_a_different_experiment(local_ray, tmp_pat
     members = Registry(tmp_path / "mix" / "registry.db").members(run="mix")
     assert len(members) == 2 and all("zoo1/SUC" in m for m in members["metrics"])
     parent = mlflow.MlflowClient(tracking_uri=uri).get_run(first["mlflow_run_id"]).data.metrics
-    assert parent["gen/zoo1_SUC_best"] == max(m["zoo1/SUC"] for m in members["metrics"])
+    assert parent["gen/zoo1_SUC_best_4ep"] == max(m["zoo1/SUC"] for m in members["metrics"])  # eval_episodes 4
     assert parent["gen/population_size"] == 2
     saved = (tmp_path / "mix" / "config.json").read_bytes()
     other = _service(tmp_path, "mix", algorithm="sp", task="4p2e3o", sp={})

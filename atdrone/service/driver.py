@@ -419,8 +419,9 @@ def _generation_curves(report: GenerationReport, registry: Any, cfg: ExperimentC
     }
     known = [v for v in suc.values() if v is not None]
     if known:
-        curves[f"gen/{cfg.final_zoo}_SUC_best"] = float(max(known))
-        curves[f"gen/{cfg.final_zoo}_SUC_mean"] = float(np.mean(known))
+        noisy = f"{cfg.eval_episodes}ep"  # named for their episode count: the final table's are final_episodes
+        curves[f"gen/{cfg.final_zoo}_SUC_best_{noisy}"] = float(max(known))
+        curves[f"gen/{cfg.final_zoo}_SUC_mean_{noisy}"] = float(np.mean(known))
     return curves
 
 
