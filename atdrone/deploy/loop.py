@@ -34,7 +34,8 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from dataclasses import replace as dc_replace
 from typing import Any
 
 import numpy as np
@@ -58,6 +59,8 @@ OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
 LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
 ARRIVED = 0.05  # m: a transit is over when every drone is this close to its target
 AIRBORNE = ("taking_off", "flying", "landing")
+CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
+CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
 
 
 def advance_reference(
@@ -247,6 +250,9 @@ class Flight:
         self.rng = np.random.default_rng(cfg.seed)
         self.escape = EscapeParams()
         self.horizon = cfg.horizon or task.task.task_horizon
+        if self.evader_drones:  # the shield keeps drones 2 * drone_radius apart: a capture counts 5 cm beyond
+            reach = max(task.task.capture_range, 2 * cfg.shield.drone_radius + CAPTURE_SLACK)
+            self.task = task = dc_replace(task, task=dc_replace(task.task, capture_range=reach))
         self.state = dict.fromkeys(self.names, "idle")
         self.ticks = Ticker(clock, self.dt)
         self.t0 = clock.now()
@@ -260,6 +266,7 @@ class Flight:
         self.error: BaseException | None = None
         self.notes: dict[str, list[str]] = {}  # fault notes for the next logged tick, per drone
         self.policy = PolicyRunner(team, clock, self.faults)
+        self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="transit")
 
     # ------------------------------------------------------------------ poses
     def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -321,6 +328,7 @@ class Flight:
             self._log_tick(self.clock.now(), -1, pos, yaw, self._shield(pos, age, pos), {}, None)
             self.bridge.stop_heartbeat()
             self.policy.close()
+            self._worker.shutdown(wait=False, cancel_futures=True)
         if self.stop and not self.aborted:
             self.aborted = f"stop requested ({self.stop.signal})"
 
@@ -375,10 +383,19 @@ class Flight:
         start[:, 2] = self.cfg.flight_height
         end = np.c_[targets, np.full(len(targets), self.cfg.flight_height)]
         end[~flying] = start[~flying]
+        planning = self._worker.submit(
+            plan_transit,
+            start,
+            end,
+            self.cfg.goto_speed,
+            self.shield_cfg.drone_radius,
+            self.shield_cfg.drone_half_height,
+        )
+        while not planning.done():  # the loop keeps ticking (and the heartbeat fed) while the plan is made
+            if not self._hold_tick():
+                return
         try:
-            plan = plan_transit(
-                start, end, self.cfg.goto_speed, self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height
-            )
+            plan = planning.result()
         except TransitBlocked as exc:
             self.aborted = f"transit blocked: {exc}"
             return
@@ -617,8 +634,32 @@ class Flight:
             self.bridge.notify_stop(names)
             self._set_state(names, "landing")
 
+    def _hold_tick(self) -> bool:
+        """One tick holding every streaming drone where it is (latched, zero velocity, through the shield);
+        False when the shield ended the flight."""
+        tick = self._begin_tick()
+        pos, yaw, age = self.measured()
+        here = np.where(np.isfinite(self.hold_at).all(1)[:, None], self.hold_at, pos)
+        decision = self._shield(pos, age, here, np.zeros_like(pos))
+        decision = _hold_all(decision, self.hold_at, pos, self._airborne() & np.isfinite(pos).all(1))
+        decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
+        ended = self._apply(decision)
+        self._touchdown(pos)
+        self._log_tick(tick, -1, pos, yaw, decision, {}, None)
+        return not ended
+
+    def _brake(self, seconds: float = 0.6) -> None:
+        """Hold every streaming drone for ``seconds``: a drone handed to the planner at speed would swing back
+        to where the land command found it."""
+        end = self.clock.now() + seconds
+        while self.clock.now() < end and any(self.state[n] == "flying" for n in self.names):
+            if not self._hold_tick():
+                return
+
     def _land_all(self) -> None:
-        """Land every drone still in the air, watching the shield (and feeding the heartbeat) until they are down."""
+        """Brake, then land every drone still in the air, watching the shield (and feeding the heartbeat) until
+        they are down."""
+        self._brake()
         self._land([n for n in self.names if self.state[n] in AIRBORNE])
         if any(self.state[n] == "landing" for n in self.names):
             self._watch(max(1.0, self.cfg.flight_height / 0.5) + 1.0, landing=True)
@@ -635,6 +676,7 @@ class Flight:
             tick = self._begin_tick()
             pos, yaw, age = self.measured()
             decision = self._shield(pos, age, pos)  # no setpoints of ours: the high-level commander flies
+            decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
             self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             if decision.lost() or (decision.action == Action.STOP).any():
                 self._escalate(decision)

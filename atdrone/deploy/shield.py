@@ -24,9 +24,11 @@ Rules (``rule`` names as they appear in the flight log):
   task (boxes and discs; the walls are the fence's) is pushed out to that clearance.
 - ``separation``: every drone is an ellipsoid of radius ``drone_radius`` and
   half-height ``drone_half_height`` (Crazyswarm's 0.125 / 0.375 m); two physical drones
-  conflict when their ellipsoids touch now, at their setpoints, or on their measured
-  straight-line motion within ``lookahead`` seconds (the tick, the radio and the stopping
-  time); both hold, pushed apart.
+  conflict when their ellipsoids touch now or on their measured straight-line motion
+  within ``lookahead`` seconds (the tick, the radio and the stopping time), or when their
+  proposed setpoints, carried along their velocity feed-forward for ``lookahead``
+  seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
+  pushed apart to 1.2 ellipsoids.
 - ``stale_pose``: a drone without a fresh pose for ``stale_pose`` seconds, or with NaN
   in its pose, lands. ``all_stale``: every physical drone stale -> all land;
   ``mocap_lost``: the freshest pose older than ``stop_after`` -> all STOP.
@@ -50,6 +52,7 @@ import numpy as np
 
 from atdrone.config import _check, _non_negative, _positive
 
+HOLD_MARGIN = 1.1  # a pair holds when its ellipsoids would come this close (scaled): room to brake
 PUSH_MARGIN = 1.2  # a held pair is pushed apart until their scaled distance reaches this
 
 
@@ -292,10 +295,10 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     i, j = i[keep], j[keep]
     r, h = cfg.drone_radius, cfg.drone_half_height
     now_d = ellipsoid_distance(pos[j] - pos[i], r, h)
-    at_sp = ellipsoid_distance(sp[j] - sp[i], r, h)
     ahead = closest_approach(pos[j] - pos[i], vel[j] - vel[i], cfg.lookahead, r, h)
-    converging = at_sp <= now_d + 1e-12
-    conflict_pair = (now_d < PUSH_MARGIN) & converging | (now_d < 1) | ((at_sp < 1) | (ahead < 1)) & converging
+    proposed = closest_approach(sp[j] - sp[i], vel_ff[j] - vel_ff[i], cfg.lookahead, r, h)
+    converging = proposed < now_d - 1e-12
+    conflict_pair = (now_d < HOLD_MARGIN) | (ahead < HOLD_MARGIN) | ((proposed < HOLD_MARGIN) & converging)
     conflict = np.zeros(D, dtype=bool)
     conflict[i[conflict_pair]] = True
     conflict[j[conflict_pair]] = True

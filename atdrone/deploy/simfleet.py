@@ -421,6 +421,7 @@ class SimRadio:
         self._thread.join(timeout=2)
 
     def _run(self) -> None:
+        next_t = time.monotonic()
         while not self._stop.is_set():
             try:
                 driver, pk = self.queue.get(timeout=0.05)
@@ -428,9 +429,12 @@ class SimRadio:
                 continue
             while time.monotonic() < self.jammed_until and not self._stop.is_set():
                 time.sleep(0.005)
+            now = time.monotonic()
+            next_t = max(next_t, now - 0.02) + 1.0 / self.packet_rate  # at most 20 ms of burst credit
+            if next_t > now:
+                time.sleep(next_t - now)
             driver.transmit(pk)
             self.sent += 1
-            time.sleep(1.0 / self.packet_rate)
 
 
 _RADIOS: dict[int, SimRadio] = {}  # UDP port -> the radio of its fleet
@@ -473,8 +477,9 @@ def register_simradio() -> None:
 class SimFleet:
     """Simulated Crazyflies on loopback UDP ports, stepped on a clock (a context manager).
 
-    ``radio``: the URIs in :attr:`uris` are ``simradio://`` (through one :class:`SimRadio`)
-    when true, plain ``udp://`` otherwise. ``yaw``: the drones' true yaw on the ground.
+    ``radio``: the URIs in :attr:`uris` are ``simradio://`` (through one :class:`SimRadio`
+    taking ``packet_rate`` packets per clock second, about what a Crazyradio delivers) when
+    true, plain ``udp://`` otherwise. ``yaw``: the drones' true yaw on the ground.
     """
 
     def __init__(
@@ -486,7 +491,7 @@ class SimFleet:
         seed: int = 0,
         radio: bool = True,
         yaw: float = math.pi / 2,
-        packet_rate: float = 2000.0,
+        packet_rate: float = 1000.0,
     ) -> None:
         start = np.asarray(start, dtype=np.float64).reshape(len(names), 3)
         self.clock = clock
@@ -500,7 +505,7 @@ class SimFleet:
             s.bind(("127.0.0.1", 0))
             s.settimeout(0.05)
             self._socks[n] = s
-        self.radio = SimRadio(packet_rate) if radio else None
+        self.radio = SimRadio(packet_rate * clock.rate) if radio else None  # packets per clock second
         scheme = SIMRADIO if radio else "udp://"
         self.uris = {n: f"{scheme}127.0.0.1:{s.getsockname()[1]}" for n, s in self._socks.items()}
         if self.radio is not None:
