@@ -42,7 +42,6 @@ FAULT_KINDS = (
     "policy_stall",
     "loop_hang",
     "exception",
-    "radio_jam",
 )
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
@@ -123,13 +122,10 @@ class Fault:
     kind: mocap_dropout (``drone`` or the whole system when empty, for ``duration`` s),
     link_loss (``drone``), drift (``drone`` pushed by ``accel`` m/s^2), low_battery
     (``drone`` at ``volts``), policy_stall (the policy takes ``duration`` s), loop_hang
-    (the loop thread hangs ``duration`` s), exception (the loop raises), radio_jam (the
-    radio blocks every send for ``duration`` s of clock time).
+    (the loop thread hangs ``duration`` s), exception (the loop raises).
     """
 
-    kind: Literal[
-        "mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall", "loop_hang", "exception", "radio_jam"
-    ]
+    kind: Literal["mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall", "loop_hang", "exception"]
     at: float = field(metadata=_check(_non_negative))
     drone: str = field(default="", metadata={"empty_ok": True})
     duration: float = field(default=1.0, metadata=_check(_non_negative))

@@ -273,10 +273,8 @@ def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap
             fire = partial(setattr, faults, "stall", f.duration)
         elif f.kind == "loop_hang":
             fire = partial(setattr, faults, "hang", f.duration)
-        elif f.kind == "exception":
+        else:  # exception
             fire = partial(setattr, faults, "raise_now", True)
-        else:  # radio_jam: the radio model blocks for the duration (wall seconds of the radio)
-            fire = partial(fleet.jam_radio, f.duration / clock.rate)
         faults.add(f.at, f.drone, f.kind, fire)
 
 

@@ -564,6 +564,7 @@ class Flight:
     ) -> ShieldDecision:
         battery, link = self.bridge.battery(), self.bridge.link_age()
         bits = self.bridge.supervisor()
+        sender = self.bridge.sender_age()
         airborne = self._airborne()
         inp = ShieldInput(
             dt=self.dt,
@@ -576,7 +577,8 @@ class Flight:
             setpoint=setpoints,
             prev_setpoint=self.prev_setpoint,
             battery=np.array([battery.get(n, np.nan) if airborne[i] else np.inf for i, n in enumerate(self.names)]),
-            link_age=np.array([link.get(n, np.inf) * self.clock.rate for n in self.names]),
+            # a sender stuck in a blocked radio is as good as a lost link: nothing reaches the drones
+            link_age=np.array([max(link.get(n, np.inf) * self.clock.rate, sender) for n in self.names]),
             policy_latency=policy_late,
             stop_requested=bool(self.stop),
             setpoint_vel=vel,

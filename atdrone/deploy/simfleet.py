@@ -183,6 +183,8 @@ class SimCrazyflie:
     var_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     yaw_error: float = 0.0
     var_yaw: float = INITIAL_STD_YAW**2
+    last_measure: float = -np.inf  # clock time of the last position measurement
+    now: float = 0.0  # clock time of the last physics step
     push_acc: np.ndarray = field(default_factory=lambda: np.zeros(3))
     battery: float = 4.1
     extpos: tuple[float, float, float] | None = None
@@ -211,7 +213,8 @@ class SimCrazyflie:
         self.var_yaw = INITIAL_STD_YAW**2
         self.counts["estimator_reset"] += 1
 
-    def measure_position(self, p: Sequence[float]) -> None:
+    def measure_position(self, p: Sequence[float], now: float = 0.0) -> None:
+        self.last_measure = now
         std = max(float(self.params["locSrv.extPosStdDev"]), 1e-6)
         gain = self.var_pos / (self.var_pos + std * std)
         self.est_pos = self.est_pos + gain * (np.asarray(p, dtype=np.float64) - self.est_pos)
@@ -225,7 +228,11 @@ class SimCrazyflie:
         self.var_yaw = (1 - gain) * self.var_yaw
 
     def est_vel(self) -> np.ndarray:
-        """The estimator's velocity (its frame): the true velocity as the IMU, turned by the yaw error."""
+        """The estimator's velocity: while positions arrive (the last within 0.2 s) the filter keeps it
+        consistent with them (the true velocity in the frame of the positions); without them it is the IMU's,
+        turned by the yaw error."""
+        if self.now - self.last_measure <= 0.2:
+            return self.vel.copy()
         return _rotate(self.vel, -self.yaw_error)
 
     # ------------------------------------------------------------ commands
@@ -295,6 +302,7 @@ class SimCrazyflie:
     # ------------------------------------------------------------ physics
     def step(self, now: float, dt: float) -> None:
         d = self.dyn
+        self.now = now
         if self.estop_wd is not None and now - self.estop_wd > d.estop_watchdog and not self.locked:
             self.emergency_stop(now, "estop_watchdog")
         if self.motors_on:
@@ -688,12 +696,12 @@ class SimFleet:
         if ch == crtp.LOC_POSITION:
             d.extpos = crtp.decode_extpos(p)
             d.counts["extpos"] += 1
-            d.measure_position(d.extpos)
+            d.measure_position(d.extpos, now)
         elif ch == crtp.LOC_GENERIC and p and p[0] == crtp.LOC_EXT_POSE:
             pos, quat = crtp.decode_extpose(p)
             d.extpos = pos
             d.counts["extpose"] += 1
-            d.measure_position(pos)
+            d.measure_position(pos, now)
             d.measure_yaw(crtp.yaw_of_quaternion(*quat))
         elif ch == crtp.LOC_GENERIC and p and p[0] == crtp.LOC_EMERGENCY_STOP:
             d.emergency_stop(now)
