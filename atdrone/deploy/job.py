@@ -157,13 +157,22 @@ class Backend:
 
 
 def ground_positions(cfg: DeployConfig, task: TaskConfig, seed: int) -> np.ndarray:
-    """Where the simulated drones stand before takeoff: a spawn draw of the task (z = 0)."""
+    """Where the simulated drones stand before takeoff: a spawn draw of the task whose drones are clear of each
+    other's separation ellipsoids (z = 0)."""
+    from atdrone.deploy.transit import separated_spawn
     from atdrone.envs.core import spawn
 
-    pos, _ = spawn(task, np.random.default_rng(seed), 1)
+    rng = np.random.default_rng(seed)
     pursuers = cfg.role_names("learner") + cfg.role_names("partner")
-    xy = {n: pos[0, i] for i, n in enumerate(pursuers)}
-    xy.update({n: pos[0, len(pursuers) + j] for j, n in enumerate(cfg.role_names("evader"))})
+    evaders = cfg.role_names("evader")
+
+    def draw() -> tuple[np.ndarray, np.ndarray]:
+        pos, _ = spawn(task, rng, 1)
+        return pos[0, : len(pursuers)], pos[0, len(pursuers) : len(pursuers) + len(evaders)]
+
+    pos_p, pos_e = separated_spawn(draw, cfg.shield.drone_radius, cfg.shield.drone_half_height)
+    xy = {n: pos_p[i] for i, n in enumerate(pursuers)}
+    xy.update({n: pos_e[j] for j, n in enumerate(evaders)})
     return np.array([[*xy[d.name], 0.0] for d in cfg.drones])
 
 

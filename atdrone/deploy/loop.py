@@ -46,7 +46,7 @@ from atdrone.deploy.clock import Clock, Ticker
 from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.flightlog import FlightLog
 from atdrone.deploy.mocap import MocapSource, Pose
-from atdrone.deploy.shield import Action, Obstacles, ShieldConfig, ShieldDecision, ShieldInput, shield
+from atdrone.deploy.shield import Action, Obstacles, ShieldConfig, ShieldDecision, ShieldInput, geofence, shield
 from atdrone.deploy.transit import TransitBlocked, plan_transit, separated_spawn
 from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge, spawn
 from atdrone.envs.evaders import EscapeParams
@@ -343,12 +343,7 @@ class Flight:
         self._set_state(self.names, "taking_off")
         self._watch(self.cfg.takeoff_duration + 0.5)
         self._set_state([n for n in self.names if self.state[n] == "taking_off"], "flying")
-        self.prev_setpoint[:] = np.nan
-        pos, _, _ = self.measured()
-        hover = {
-            n: (np.r_[pos[i, :2], self.cfg.flight_height], np.zeros(3), np.zeros(3)) for i, n in enumerate(self.names)
-        }
-        self.bridge.post_setpoints(hover)  # low-level control from here on: the planner stops
+        self.prev_setpoint[:] = np.nan  # the first transit tick takes over from the planner, through the shield
 
     def _spawn(self) -> tuple[np.ndarray, np.ndarray]:
         P = len(self.pursuers)
@@ -480,7 +475,8 @@ class Flight:
                     vel[P:][captured] = 0.0
             decision = self._shield(pos, age, setpoints, vel, self.policy.late_for())
             if actions is None and not (decision.action >= Action.LAND).any():
-                decision = _hold_all(decision, self.hold_at, pos, self._airborne() & np.isfinite(pos).all(1))
+                fence = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+                decision = _hold_all(decision, self.hold_at, pos, self._airborne() & np.isfinite(pos).all(1), fence)
                 self.notes.setdefault("", []).append("policy_late")
             c4 = time.perf_counter()
             if not outcome and self._apply(decision):
@@ -642,10 +638,11 @@ class Flight:
         tick = self._begin_tick()
         pos, yaw, age = self.measured()
         here = np.where(np.isfinite(self.hold_at).all(1)[:, None], self.hold_at, pos)
-        decision = self._shield(pos, age, here, np.zeros_like(pos))
-        decision = _hold_all(decision, self.hold_at, pos, self._airborne() & np.isfinite(pos).all(1))
+        decision = self._shield(pos, age, here, np.zeros_like(pos))  # clamped into the fence, zero velocity
         decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
         ended = self._apply(decision)
+        track = decision.action == Action.TRACK
+        self.hold_at[track] = decision.setpoint[track]  # latched: the next hold tick sends the same point
         self._touchdown(pos)
         self._log_tick(tick, -1, pos, yaw, decision, {}, None)
         return not ended
@@ -749,13 +746,20 @@ class Flight:
                 )
 
 
-def _hold_all(decision: ShieldDecision, prev_hold: np.ndarray, pos: np.ndarray, airborne: np.ndarray) -> ShieldDecision:
+def _hold_all(
+    decision: ShieldDecision,
+    prev_hold: np.ndarray,
+    pos: np.ndarray,
+    airborne: np.ndarray,
+    fence: tuple[np.ndarray, np.ndarray],
+) -> ShieldDecision:
     """A late policy: every airborne drone the shield let track is held too, at its latched hold point (where
     it was held last tick, else where it is), zero velocity."""
     action = decision.action.copy()
     newly = airborne & (action == Action.TRACK)
     action[newly] = Action.HOLD
     latch = np.where(np.isfinite(prev_hold).all(1)[:, None], prev_hold, pos)
+    latch[:, :2] = np.clip(latch[:, :2], *fence)
     setpoint = decision.setpoint.copy()
     setpoint[newly] = latch[newly]
     velocity = np.zeros_like(setpoint) if decision.velocity is None else decision.velocity.copy()

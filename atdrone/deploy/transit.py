@@ -52,11 +52,12 @@ class Transit:
         return pos, np.where(moving[:, None], direction, 0.0)
 
 
-def _clear(paths: np.ndarray, k: int, others: list[int], radius: float, half_height: float, margin: float) -> bool:
-    """Whether drone k's sampled path (T, 3) stays ``margin`` (scaled) clear of each of ``others``' paths."""
+def _clear(paths: np.ndarray, k: int, others: list[int], radius: float, half_height: float, margin: np.ndarray) -> bool:
+    """Whether drone k's sampled path (T, 3) stays ``margin[k, o]`` (scaled) clear of each of ``others``' paths."""
     if not others:
         return True
-    return bool((ellipsoid_distance(paths[others] - paths[k], radius, half_height) >= margin).all())
+    scaled = ellipsoid_distance(paths[others] - paths[k], radius, half_height)  # (len(others), T)
+    return bool((scaled >= margin[k, others][:, None] - 1e-9).all())
 
 
 def plan_transit(
@@ -84,6 +85,15 @@ def plan_transit(
         frac = np.clip((times - d) / max(dur[i], 1e-9), 0.0, 1.0) if dur[i] > 0 else np.ones_like(times)
         return start[i] + (end[i] - start[i]) * frac[:, None]
 
+    # a pair that starts or ends closer than ``margin`` (drones placed by hand, a hover target) must only not
+    # come closer than that
+    i, j = np.triu_indices(D, 1)
+    pair = np.full((D, D), float(margin))
+    at = np.minimum(
+        ellipsoid_distance(start[j] - start[i], radius, half_height),
+        ellipsoid_distance(end[j] - end[i], radius, half_height),
+    )
+    pair[i, j] = pair[j, i] = np.minimum(margin, at)
     rng = np.random.default_rng(0)
     orders = [list(range(D)), sorted(range(D), key=lambda i: -dur[i]), sorted(range(D), key=lambda i: dur[i])]
     orders += [list(rng.permutation(D)) for _ in range(tries)]
@@ -93,7 +103,7 @@ def plan_transit(
         for n, k in enumerate(order):
             for d in np.arange(0.0, max_delay + 1e-9, delay_step):
                 paths[k] = path(k, float(d))
-                if _clear(paths, k, order[:n], radius, half_height, margin):
+                if _clear(paths, k, order[:n], radius, half_height, pair):
                     delay[k] = d
                     break
             else:
