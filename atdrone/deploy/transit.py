@@ -27,16 +27,26 @@ class TransitBlocked(RuntimeError):
 
 @dataclass(frozen=True)
 class Transit:
-    """Straight lines from ``start`` (D, 3) to ``end`` (D, 3) at ``speed``, drone i leaving at ``delay[i]``."""
+    """Lines at ``speed`` from ``start`` (D, 3) through ``via`` (D, 3; NaN: straight) to ``end`` (D, 3), drone i
+    leaving at ``delay[i]``."""
 
     start: np.ndarray
     end: np.ndarray
     delay: np.ndarray
     speed: float
+    via: np.ndarray | None = None
+
+    def _legs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        via = np.full_like(self.start, np.nan) if self.via is None else self.via
+        mid = np.where(np.isfinite(via).all(1)[:, None], via, (self.start + self.end) / 2)
+        first = np.linalg.norm(mid - self.start, axis=1) / self.speed
+        second = np.linalg.norm(self.end - mid, axis=1) / self.speed
+        return mid, first, second
 
     @property
     def duration(self) -> np.ndarray:
-        return np.asarray(np.linalg.norm(self.end - self.start, axis=1) / self.speed)
+        _, first, second = self._legs()
+        return np.asarray(first + second)
 
     @property
     def total(self) -> float:
@@ -44,12 +54,19 @@ class Transit:
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Reference positions (D, 3) and velocities (D, 3) at ``t`` seconds after the transit began."""
-        dur = self.duration
-        frac = np.clip((t - self.delay) / np.maximum(dur, 1e-9), 0.0, 1.0)
-        pos = self.start + (self.end - self.start) * frac[:, None]
-        moving = (t >= self.delay) & (t < self.delay + dur) & (dur > 0)
-        direction = (self.end - self.start) / np.maximum(dur, 1e-9)[:, None]
-        return pos, np.where(moving[:, None], direction, 0.0)
+        mid, first, second = self._legs()
+        tau = np.clip(t - self.delay, 0.0, None)
+        on_first = tau < first
+        f1 = np.clip(tau / np.maximum(first, 1e-9), 0.0, 1.0)
+        f2 = np.clip((tau - first) / np.maximum(second, 1e-9), 0.0, 1.0)
+        pos = np.where(
+            on_first[:, None], self.start + (mid - self.start) * f1[:, None], mid + (self.end - mid) * f2[:, None]
+        )
+        d1 = (mid - self.start) / np.maximum(first, 1e-9)[:, None]
+        d2 = (self.end - mid) / np.maximum(second, 1e-9)[:, None]
+        moving = (t >= self.delay) & (tau < first + second)
+        vel = np.where(on_first[:, None], d1, d2)
+        return pos, np.where(moving[:, None], vel, 0.0)
 
 
 def _clear(paths: np.ndarray, k: int, others: list[int], radius: float, half_height: float, margin: np.ndarray) -> bool:
@@ -58,6 +75,21 @@ def _clear(paths: np.ndarray, k: int, others: list[int], radius: float, half_hei
         return True
     scaled = ellipsoid_distance(paths[others] - paths[k], radius, half_height)  # (len(others), T)
     return bool((scaled >= margin[k, others][:, None] - 1e-9).all())
+
+
+def _detours(start: np.ndarray, end: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None) -> list[np.ndarray]:
+    """Waypoints beside the straight line: 0.4, 0.8 and 1.2 m either side of its middle (inside ``bounds``)."""
+    mid = (start + end) / 2
+    d = end[:2] - start[:2]
+    n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-9) if np.hypot(*d) > 1e-9 else np.array([1.0, 0.0])
+    out = []
+    for off in (0.4, -0.4, 0.8, -0.8, 1.2, -1.2):
+        w = mid.copy()
+        w[:2] = mid[:2] + n * off
+        if bounds is not None:
+            w[:2] = np.clip(w[:2], *bounds)
+        out.append(w)
+    return out
 
 
 def plan_transit(
@@ -70,20 +102,26 @@ def plan_transit(
     delay_step: float = 0.5,
     max_delay: float = 20.0,
     sample: float = 0.1,
-    tries: int = 30,
+    tries: int = 20,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Transit:
-    """Start delays for straight-line transits that keep every pair ``margin`` clear (see the module docstring)."""
+    """Start delays (and detours) for transits that keep every pair ``margin`` clear (see the module docstring)."""
     start = np.asarray(start, dtype=np.float64).reshape(-1, 3)
     end = np.asarray(end, dtype=np.float64).reshape(-1, 3)
     D = len(start)
-    dur = np.linalg.norm(end - start, axis=1) / speed
-    horizon = max_delay + float(dur.max(initial=0.0)) + sample
+    straight = np.linalg.norm(end - start, axis=1) / speed
+    horizon = max_delay + 2.5 * float(straight.max(initial=0.0)) + 6.0
     times = np.arange(0.0, horizon, sample)
-    delay = np.full(D, np.nan)
 
-    def path(i: int, d: float) -> np.ndarray:
-        frac = np.clip((times - d) / max(dur[i], 1e-9), 0.0, 1.0) if dur[i] > 0 else np.ones_like(times)
-        return start[i] + (end[i] - start[i]) * frac[:, None]
+    def path(i: int, d: float, via: np.ndarray | None) -> np.ndarray:
+        """Drone i's positions at every sample time (T, 3), leaving at ``d`` through ``via``."""
+        mid = (start[i] + end[i]) / 2 if via is None else via
+        first = float(np.linalg.norm(mid - start[i])) / speed
+        second = float(np.linalg.norm(end[i] - mid)) / speed
+        tau = np.clip(times - d, 0.0, None)
+        f1 = np.clip(tau / max(first, 1e-9), 0.0, 1.0)[:, None]
+        f2 = np.clip((tau - first) / max(second, 1e-9), 0.0, 1.0)[:, None]
+        return np.where(tau[:, None] < first, start[i] + (mid - start[i]) * f1, mid + (end[i] - mid) * f2)
 
     # a pair that starts or ends closer than ``margin`` (drones placed by hand, a hover target) must only not
     # come closer than that
@@ -95,23 +133,34 @@ def plan_transit(
     )
     pair[i, j] = pair[j, i] = np.minimum(margin, at)
     rng = np.random.default_rng(0)
-    orders = [list(range(D)), sorted(range(D), key=lambda i: -dur[i]), sorted(range(D), key=lambda i: dur[i])]
+    orders = [list(range(D)), sorted(range(D), key=lambda i: -straight[i]), sorted(range(D), key=lambda i: straight[i])]
     orders += [list(rng.permutation(D)) for _ in range(tries)]
-    for order in orders:
-        paths = np.zeros((D, len(times), 3))
-        delay = np.full(D, np.nan)
-        for n, k in enumerate(order):
-            for d in np.arange(0.0, max_delay + 1e-9, delay_step):
-                paths[k] = path(k, float(d))
-                if _clear(paths, k, order[:n], radius, half_height, pair):
-                    delay[k] = d
+    for use_detours in (False, True):
+        for order in orders:
+            paths = np.zeros((D, len(times), 3))
+            delay = np.full(D, np.nan)
+            via = np.full((D, 3), np.nan)
+            for n, k in enumerate(order):
+                options: list[np.ndarray | None] = [None]
+                if use_detours and straight[k] > 0:
+                    options += _detours(start[k], end[k], bounds)
+                placed = False
+                for w in options:
+                    for d in np.arange(0.0, max_delay + 1e-9, delay_step):
+                        paths[k] = path(k, float(d), w)
+                        if _clear(paths, k, order[:n], radius, half_height, pair):
+                            delay[k], placed = d, True
+                            if w is not None:
+                                via[k] = w
+                            break
+                    if placed:
+                        break
+                if not placed:
                     break
-            else:
-                break
-        if np.isfinite(delay).all():
-            return Transit(start, end, delay, speed)
+            if np.isfinite(delay).all():
+                return Transit(start, end, delay, speed, via)
     raise TransitBlocked(
-        f"no conflict-free straight-line transit in {len(orders)} orders (drones on each other's lines or targets)"
+        f"no conflict-free transit in {len(orders)} orders, with detours (drones on each other's lines or targets)"
     )
 
 
