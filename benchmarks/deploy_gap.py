@@ -74,14 +74,19 @@ def main() -> None:
     args = parser.parse_args()
     work = Path(args.work_dir)
     work.mkdir(parents=True, exist_ok=True)
-    chunks = []
-    for k in range(math.ceil(args.episodes / args.chunk)):
+    chunks: list[dict[str, Any]] = []
+    k = 0
+    # chunks until ``episodes`` episodes have been flown to their own end (a chunk that ends early counts only
+    # its finished episodes, and its reason is reported), at most twice the chunks needed
+    while sum(c["episodes_flown"] for c in chunks) < args.episodes and k < 2 * math.ceil(args.episodes / args.chunk):
         path = work / f"chunk_{k:03d}.json"
         if not path.is_file():
             print(f"[deploy_gap] chunk {k}: {args.chunk} episodes", flush=True)
             atomic_write_text(path, json.dumps(_chunk(args, k, work), indent=2) + "\n")
         chunks.append(json.loads(path.read_text()))
+        k += 1
     episodes = pd.concat([pd.read_parquet(Path(c["log_dir"]) / "episodes.parquet") for c in chunks], ignore_index=True)
+    episodes = episodes[episodes["outcome"] != "shield"]  # an episode the shield ended is an early end, below
     flights = [pd.read_parquet(Path(c["log_dir"]) / "flight.parquet") for c in chunks]
     speeds = [ground_speed(f) for f in flights]
     fleet = {**episode_metrics(episodes), "episodes": len(episodes)}
@@ -93,7 +98,7 @@ def main() -> None:
         f"{len(chunks)} chunks of {args.chunk}, seeds {args.seed}..{args.seed + len(chunks) - 1}",
         "member": member,
         "episodes_flown": int(sum(c["episodes_flown"] for c in chunks)),
-        "episodes_logged": len(episodes),
+        "episodes_compared": len(episodes),
         "outcomes": {str(k): int(v) for k, v in episodes["outcome"].value_counts().sort_index().items()},
         "chunks_ended_early": {c["chunk"]: c["ended_early"] for c in chunks if c["ended_early"]},
         "link_loss_chunks": sum("link_lost" in c["ended_early"] for c in chunks),

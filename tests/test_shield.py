@@ -202,6 +202,15 @@ def test_obstacles_push_setpoints_out_to_the_clearance() -> None:
     np.testing.assert_allclose(out, [[2.4, 2.85]])
 
 
+def test_a_push_never_carries_a_held_drone_toward_a_third() -> None:
+    """cf1 is pushed away from cf0 (0.2 m apart) straight toward cf2, 0.3 m beyond it: it holds at its latch."""
+    pos = [[1.0, 2.0, 0.5], [1.2, 2.0, 0.5], [1.5, 2.0, 0.5]]
+    d = shield(tick(pos, setpoint=pos), CFG)
+    assert list(d.action) == [Action.HOLD, Action.HOLD, Action.TRACK]  # cf1-cf2: 0.30 apart, still
+    assert d.setpoint[1, 0] <= 1.2 + 1e-9  # not pushed toward cf2
+    assert d.setpoint[0, 0] < 1.0  # cf0 is pushed away, nothing beyond it
+
+
 def test_a_locked_drone_is_stopped_and_the_others_land() -> None:
     d = shield(tick(TWO_APART, locked=np.array([True, False])), CFG)
     assert list(d.action) == [Action.STOP, Action.LAND] and rules(d) == {"locked"}
@@ -301,9 +310,9 @@ def test_properties_on_random_ticks(pos: list[tuple[float, float, float]], sp: l
     sent = (d.action == Action.TRACK) | (d.action == Action.HOLD)
     assert np.isfinite(d.setpoint[sent]).all()
     assert (d.setpoint[sent, :2] >= lo - 1e-9).all() and (d.setpoint[sent, :2] <= hi + 1e-9).all()
-    known = np.isfinite(p).all(1)
-    step = np.hypot(*(d.setpoint[sent & known, :2] - p[sent & known, :2]).T)
-    assert (step <= CFG.max_step + 1e-9).all()  # the step limit holds whatever the speed clamp did
+    inside = np.isfinite(p).all(1) & (p[:, :2] >= lo).all(1) & (p[:, :2] <= hi).all(1)
+    step = np.hypot(*(d.setpoint[sent & inside, :2] - p[sent & inside, :2]).T)
+    assert (step <= CFG.max_step + 1e-9).all()  # inside the fence the step limit holds whatever the speed clamp
     track = np.flatnonzero(d.action == Action.TRACK)
     for a in range(len(track)):
         for b in range(a + 1, len(track)):

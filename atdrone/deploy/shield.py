@@ -30,8 +30,9 @@ Rules (``rule`` names as they appear in the flight log):
   seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
   pushed apart to 1.2 ellipsoids.
 - ``stale_pose``: a drone without a fresh pose for ``stale_pose`` seconds, or with NaN
-  in its pose, lands. ``all_stale``: every physical drone stale -> all land;
-  ``mocap_lost``: the freshest pose older than ``stop_after`` -> all STOP.
+  in its pose, lands. ``all_stale``: every drone stale (a landed drone with a fresh
+  pose shows the system alive) -> all land; ``mocap_lost``: the freshest pose older than
+  ``stop_after`` -> all STOP.
 - ``policy_stall``: the policy has been late for ``policy_stall`` s -> all land.
 - ``link_lost``: no packet from a drone for ``link_timeout`` -> that drone is LOST and
   every other drone lands. ``locked``: a drone's supervisor reports it locked (its
@@ -238,8 +239,9 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     known = np.asarray(np.isfinite(pos).all(1))
     age = np.asarray(inp.pose_age, dtype=np.float64)
     stale = phys & (~known | ~(age <= cfg.stale_pose))
-    if phys.any() and stale[phys].all():
-        freshest = float(np.min(np.where(known, age, np.inf)[phys]))
+    tracked = phys | np.isfinite(age)  # a landed drone still tracked shows the system is alive
+    if phys.any() and (~known | ~(age <= cfg.stale_pose))[tracked].all():
+        freshest = float(np.min(np.where(known, age, np.inf)[tracked]))
         if freshest > cfg.stop_after:
             fire(phys, Action.STOP, "mocap_lost", f"no fresh pose of any drone for {freshest:.2f} s")
         else:
@@ -323,7 +325,16 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     out_vel = np.full((D, 3), np.nan)
     out[track] = sp[track]
     out_vel[track] = np.where(clamped[track, None], 0.0, vel_ff[track])
-    out[hold] = latch[hold] + push[hold]
+    pushed = latch + push
+    # a push must not carry a drone toward a third one: where it would, the drone holds at its latch
+    where = np.where(hold[:, None], pushed, np.where(track[:, None], sp, pos))
+    for k in np.flatnonzero(hold & ok & (np.abs(push).sum(1) > 0)):
+        others = np.flatnonzero(ok & (np.arange(D) != k))
+        before = ellipsoid_distance(pos[others] - pos[k], r, h)
+        after = ellipsoid_distance(where[others] - pushed[k], r, h)
+        if (after < np.minimum(before, PUSH_MARGIN) - 1e-9).any():
+            pushed[k] = latch[k]
+    out[hold] = pushed[hold]
     out_vel[hold] = 0.0
     held = hold & phys
     out[held, :2] = np.clip(out[held, :2], lo, hi)  # a hold never leaves the fence either
