@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import time
 from pathlib import Path
@@ -62,6 +63,38 @@ def _chunk(args: argparse.Namespace, k: int, work: Path) -> dict[str, Any]:
     }
 
 
+def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool) -> dict[str, Any]:
+    """The report over the chunks so far (the gap to the simulator only when ``final``), written to --out."""
+    episodes = pd.concat([pd.read_parquet(Path(c["log_dir"]) / "episodes.parquet") for c in chunks], ignore_index=True)
+    episodes = episodes[episodes["outcome"] != "shield"]  # an episode the shield ended is an early end, below
+    speeds = [ground_speed(pd.read_parquet(Path(c["log_dir"]) / "flight.parquet")) for c in chunks]
+    fleet = {**episode_metrics(episodes), "episodes": len(episodes)}
+    cfg = load_deploy(ROOT / "configs" / "deploy" / "gap_4p2e1o.json", horizon=args.horizon)
+    team, member = build_team(cfg)
+    report = {
+        "config": f"configs/deploy/gap_4p2e1o.json, clock rate {args.clock_rate}, horizon {args.horizon}, "
+        f"{len(chunks)} chunks of {args.chunk}, seeds {args.seed}..{args.seed + len(chunks) - 1}",
+        "complete": final,
+        "member": member,
+        "episodes_flown": int(sum(c["episodes_flown"] for c in chunks)),
+        "episodes_compared": len(episodes),
+        "fleet": fleet,
+        "outcomes": {str(k): int(v) for k, v in episodes["outcome"].value_counts().sort_index().items()},
+        "chunks_ended_early": {str(c["chunk"]): c["ended_early"] for c in chunks if c["ended_early"]},
+        "link_loss_chunks": sum("link_lost" in c["ended_early"] for c in chunks),
+        "link_lost_rows": int(sum(c["link_lost_rows"] for c in chunks)),
+        "ground_speed_median_per_chunk": speeds,
+        "ground_speed_median": float(np.median([s for s in speeds if math.isfinite(s)] or [math.nan])),
+        "gap": simulation_gap(cfg, effective_task(cfg), team, fleet) if final and len(episodes) else None,
+        "wall_s": float(sum(c["wall_s"] for c in chunks)),
+        "load_average": list(os.getloadavg()),
+        "python": platform.python_version(),
+    }
+    if args.out:
+        atomic_write_text(Path(args.out), json.dumps(report, indent=2) + "\n")
+    return report
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=50)
@@ -85,34 +118,8 @@ def main() -> None:
             atomic_write_text(path, json.dumps(_chunk(args, k, work), indent=2) + "\n")
         chunks.append(json.loads(path.read_text()))
         k += 1
-    episodes = pd.concat([pd.read_parquet(Path(c["log_dir"]) / "episodes.parquet") for c in chunks], ignore_index=True)
-    episodes = episodes[episodes["outcome"] != "shield"]  # an episode the shield ended is an early end, below
-    flights = [pd.read_parquet(Path(c["log_dir"]) / "flight.parquet") for c in chunks]
-    speeds = [ground_speed(f) for f in flights]
-    fleet = {**episode_metrics(episodes), "episodes": len(episodes)}
-    cfg = load_deploy(ROOT / "configs" / "deploy" / "gap_4p2e1o.json", horizon=args.horizon)
-    team, member = build_team(cfg)
-    gap = simulation_gap(cfg, effective_task(cfg), team, fleet)
-    report = {
-        "config": f"configs/deploy/gap_4p2e1o.json, clock rate {args.clock_rate}, horizon {args.horizon}, "
-        f"{len(chunks)} chunks of {args.chunk}, seeds {args.seed}..{args.seed + len(chunks) - 1}",
-        "member": member,
-        "episodes_flown": int(sum(c["episodes_flown"] for c in chunks)),
-        "episodes_compared": len(episodes),
-        "outcomes": {str(k): int(v) for k, v in episodes["outcome"].value_counts().sort_index().items()},
-        "chunks_ended_early": {c["chunk"]: c["ended_early"] for c in chunks if c["ended_early"]},
-        "link_loss_chunks": sum("link_lost" in c["ended_early"] for c in chunks),
-        "link_lost_rows": int(sum(c["link_lost_rows"] for c in chunks)),
-        "ground_speed_median_per_chunk": speeds,
-        "ground_speed_median": float(np.median([s for s in speeds if math.isfinite(s)])),
-        "gap": gap,
-        "wall_s": float(sum(c["wall_s"] for c in chunks)),
-        "python": platform.python_version(),
-    }
-    text = json.dumps(report, indent=2) + "\n"
-    print(text)
-    if args.out:
-        atomic_write_text(Path(args.out), text)
+        _report(args, chunks, final=False)  # the report so far, after every chunk
+    print(json.dumps(_report(args, chunks, final=True), indent=2))
 
 
 if __name__ == "__main__":

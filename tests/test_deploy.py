@@ -53,7 +53,7 @@ def sim_doc(tmp_path: Path, registry_member: tuple[str, str], **changes: Any) ->
         out_dir=str(tmp_path / "flights"),
         sim={"clock_rate": RATE, "mocap_rate": 50.0, "mocap_noise": 0.002, "mocap_latency": 0.01},
         radio={"toc_cache": str(TOC_CACHE)},
-        shield={"link_timeout": 1.0},  # a shared CI machine may pause the process a few hundred ms
+        shield={"link_timeout": 1.0, "stale_pose": 0.5},  # a shared CI machine may pause the process for a while
     )
     doc.update(changes)
     return doc

@@ -23,7 +23,7 @@ from atdrone.deploy.shield import (
     shield,
 )
 
-CFG = ShieldConfig()  # margin .25, ellipsoids .125/.375 per drone, look-ahead .7 s, max_step .3, max_speed .8
+CFG = replace(ShieldConfig(), lookahead=0.7)  # margin .25, ellipsoids .125/.375, max_step .3, max_speed .8
 ARENA = (3.6, 5.0)
 
 

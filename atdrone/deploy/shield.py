@@ -25,9 +25,9 @@ Rules (``rule`` names as they appear in the flight log):
 - ``separation``: every drone is an ellipsoid of radius ``drone_radius`` and
   half-height ``drone_half_height`` (Crazyswarm's 0.125 / 0.375 m); two physical drones
   conflict when their ellipsoids touch now or on their measured straight-line motion
-  within ``lookahead`` seconds (the tick, the radio and the stopping time), or when their
-  proposed setpoints, carried along their velocity feed-forward for ``lookahead``
-  seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
+  within ``lookahead`` seconds (1 s: the tick, the radio and the stopping time), or when
+  their proposed setpoints, or their positions, carried along the velocity feed-forward
+  for ``lookahead`` seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
   pushed apart to 1.2 ellipsoids.
 - ``stale_pose``: a drone without a fresh pose for ``stale_pose`` seconds, or with NaN
   in its pose, lands. ``all_stale``: every drone stale (a landed drone with a fresh
@@ -80,7 +80,7 @@ class ShieldConfig:
     outside_tolerance: float = field(default=0.15, metadata=_check(_non_negative))  # beyond the fence -> land
     drone_radius: float = field(default=0.125, metadata=_check(_positive))  # the separation ellipsoid, per drone
     drone_half_height: float = field(default=0.375, metadata=_check(_positive))
-    lookahead: float = field(default=0.7, metadata=_check(_non_negative))  # s: tick + radio + stopping time
+    lookahead: float = field(default=1.0, metadata=_check(_non_negative))  # s: tick + radio + stopping time
     obstacle_clearance: float = field(default=0.15, metadata=_check(_non_negative))  # m from an obstacle's edge
     max_speed: float = field(default=0.8, metadata=_check(_positive))  # m/s between consecutive setpoints
     max_step: float = field(default=0.3, metadata=_check(_positive))  # m from the measured position
@@ -299,8 +299,11 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     now_d = ellipsoid_distance(pos[j] - pos[i], r, h)
     ahead = closest_approach(pos[j] - pos[i], vel[j] - vel[i], cfg.lookahead, r, h)
     proposed = closest_approach(sp[j] - sp[i], vel_ff[j] - vel_ff[i], cfg.lookahead, r, h)
-    converging = proposed < now_d - 1e-12
-    conflict_pair = (now_d < HOLD_MARGIN) | (ahead < HOLD_MARGIN) | ((proposed < HOLD_MARGIN) & converging)
+    commanded = closest_approach(pos[j] - pos[i], vel_ff[j] - vel_ff[i], cfg.lookahead, r, h)  # ff from here
+    converging = np.minimum(proposed, commanded) < now_d - 1e-12
+    conflict_pair = (
+        (now_d < HOLD_MARGIN) | (ahead < HOLD_MARGIN) | ((np.minimum(proposed, commanded) < HOLD_MARGIN) & converging)
+    )
     conflict = np.zeros(D, dtype=bool)
     conflict[i[conflict_pair]] = True
     conflict[j[conflict_pair]] = True

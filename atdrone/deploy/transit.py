@@ -78,16 +78,17 @@ def _clear(paths: np.ndarray, k: int, others: list[int], radius: float, half_hei
 
 
 def _detours(start: np.ndarray, end: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None) -> list[np.ndarray]:
-    """Waypoints beside the straight line: 0.4, 0.8 and 1.2 m either side of its middle (inside ``bounds``)."""
+    """Waypoints: 0.4, 0.8 and 1.2 m either side of the line's middle, then 0.5 m from the start in eight
+    directions (a first step out of a crowd), inside ``bounds``."""
     mid = (start + end) / 2
     d = end[:2] - start[:2]
     n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-9) if np.hypot(*d) > 1e-9 else np.array([1.0, 0.0])
+    points = [mid[:2] + n * off for off in (0.4, -0.4, 0.8, -0.8, 1.2, -1.2)]
+    points += [start[:2] + 0.5 * np.array([np.cos(a), np.sin(a)]) for a in np.arange(8) * np.pi / 4]
     out = []
-    for off in (0.4, -0.4, 0.8, -0.8, 1.2, -1.2):
+    for p in points:
         w = mid.copy()
-        w[:2] = mid[:2] + n * off
-        if bounds is not None:
-            w[:2] = np.clip(w[:2], *bounds)
+        w[:2] = np.clip(p, *bounds) if bounds is not None else p
         out.append(w)
     return out
 
