@@ -257,15 +257,20 @@ def separation(flight: pd.DataFrame) -> dict[str, Any]:
     }
 
 
+HOLDS = ("separation", "policy_late", "nan_setpoint")  # shield rules that hold a drone in place
+
+
 def ground_speed(flight: pd.DataFrame) -> float:
     """The median horizontal speed (m/s) of the pursuer drones between consecutive ticks of the policy legs
-    (rows with step >= 0, airborne, measured on both ticks)."""
+    while they track (rows with step >= 0, airborne, measured on both ticks, held on neither: a hold is the
+    shield's, not the policy's; the trained speed is 0.30 m/s)."""
     legs = flight[(flight["step"] >= 0) & flight["role"].isin(("learner", "partner")) & flight["state"].isin(AIRBORNE)]
     speeds = []
     for _, rows in legs.sort_values("t").groupby(["drone", "episode"]):
         dt = np.diff(rows["t"].to_numpy(np.float64))
         dxy = np.hypot(np.diff(rows["x"].to_numpy(np.float64)), np.diff(rows["y"].to_numpy(np.float64)))
-        ok = (dt > 0) & np.isfinite(dxy)
+        held = rows["events"].astype(str).str.contains("|".join(HOLDS)).to_numpy()
+        ok = (dt > 0) & np.isfinite(dxy) & ~held[1:] & ~held[:-1]
         speeds.append(dxy[ok] / dt[ok])
     values = np.concatenate(speeds) if speeds else np.zeros(0)
     return float(np.median(values)) if len(values) else math.nan

@@ -25,7 +25,7 @@ Rules (``rule`` names as they appear in the flight log):
 - ``separation``: every drone is an ellipsoid of radius ``drone_radius`` and
   half-height ``drone_half_height`` (Crazyswarm's 0.125 / 0.375 m); two physical drones
   conflict when their ellipsoids touch now or on their measured straight-line motion
-  within ``lookahead`` seconds (0.7 s: the tick, the radio and the stopping time), or when
+  within ``lookahead`` seconds (1 s: the tick, the radio and the stopping time), or when
   their proposed setpoints, or their positions, carried along the velocity feed-forward
   for ``lookahead`` seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
   pushed apart to 1.2 ellipsoids.
@@ -80,7 +80,7 @@ class ShieldConfig:
     outside_tolerance: float = field(default=0.15, metadata=_check(_non_negative))  # beyond the fence -> land
     drone_radius: float = field(default=0.125, metadata=_check(_positive))  # the separation ellipsoid, per drone
     drone_half_height: float = field(default=0.375, metadata=_check(_positive))
-    lookahead: float = field(default=0.7, metadata=_check(_non_negative))  # s: tick + radio + stopping time
+    lookahead: float = field(default=1.0, metadata=_check(_non_negative))  # s: tick + radio + stopping time
     obstacle_clearance: float = field(default=0.15, metadata=_check(_non_negative))  # m from an obstacle's edge
     max_speed: float = field(default=0.8, metadata=_check(_positive))  # m/s between consecutive setpoints
     max_step: float = field(default=0.3, metadata=_check(_positive))  # m from the measured position
