@@ -46,7 +46,16 @@ from atdrone.deploy.clock import Clock, Ticker
 from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.flightlog import FlightLog
 from atdrone.deploy.mocap import MocapSource, Pose
-from atdrone.deploy.shield import Action, Obstacles, ShieldConfig, ShieldDecision, ShieldInput, geofence, shield
+from atdrone.deploy.shield import (
+    Action,
+    Obstacles,
+    ShieldConfig,
+    ShieldDecision,
+    ShieldInput,
+    geofence,
+    push_out_of_obstacles,
+    shield,
+)
 from atdrone.deploy.transit import TransitBlocked, plan_transit, separated_spawn
 from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge, spawn
 from atdrone.envs.evaders import EscapeParams
@@ -377,6 +386,12 @@ class Flight:
         start = np.where(np.isfinite(pos), pos, np.r_[0.0, 0.0, self.cfg.flight_height])
         start[:, 2] = self.cfg.flight_height
         end = np.c_[targets, np.full(len(targets), self.cfg.flight_height)]
+        # the task's spawn regions reach into the fence margin: a target the shield would clip is never reached
+        lo, hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+        end[:, :2], _ = push_out_of_obstacles(
+            np.clip(end[:, :2], lo, hi), self.obstacles, self.shield_cfg.obstacle_clearance
+        )
+        end[:, :2] = np.clip(end[:, :2], lo, hi)
         end[~flying] = start[~flying]
         planning = self._worker.submit(
             plan_transit,
