@@ -102,6 +102,13 @@ def test_the_step_limit_holds_after_the_speed_clamp() -> None:
     assert np.all(d.velocity[0] == 0.0)  # a clamped setpoint carries no feed-forward
 
 
+def test_feed_forward_never_carries_a_stale_setpoint_through_the_fence() -> None:
+    """0.10 m below the fence's top (4.75) flying +y at 0.6 m/s: Mellinger would settle 0.3 m past the setpoint
+    if it were not renewed; the feed-forward is cut to (4.75 - 4.65) / 0.5 = 0.2 m/s. x is untouched."""
+    d = shield(tick([[1.0, 4.6, 0.5]], setpoint=[[1.0, 4.65, 0.5]], setpoint_vel=np.array([[0.1, 0.6, 0.0]])), CFG)
+    np.testing.assert_allclose(d.velocity[0], [0.1, 0.2, 0.0])
+
+
 def test_feed_forward_is_passed_through_when_nothing_clamps() -> None:
     vel = np.array([[0.0, 0.3, 0.0], [0.3, 0.0, 0.0]])
     d = shield(tick(TWO_APART, setpoint_vel=vel), CFG)

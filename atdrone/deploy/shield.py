@@ -14,8 +14,9 @@ Per drone the shield decides an :class:`Action`, the most severe rule that fires
 Rules (``rule`` names as they appear in the flight log):
 
 - ``geofence``: a setpoint outside the fence (the arena shrunk by ``margin``) is pulled
-  inside. ``outside``: a drone measured beyond the fence by more than
-  ``outside_tolerance`` lands.
+  inside, and its velocity feed-forward limited so that setpoint + 0.5 s x velocity stays
+  inside (where Mellinger settles when a setpoint stops being renewed). ``outside``: a
+  drone measured beyond the fence by more than ``outside_tolerance`` lands.
 - ``speed``: a setpoint at most ``max_speed * dt`` from the previous setpoint; then
   ``step``: at most ``max_step`` (horizontal) from the measured position (applied last,
   so it always holds); ``altitude``: z within ``z_limits``; ``nan_setpoint``: a
@@ -53,6 +54,7 @@ import numpy as np
 
 from atdrone.config import _check, _non_negative, _positive
 
+FF_REACH = 0.5  # s: Mellinger's kd_xy / kp_xy (0.2 / 0.4): how far past a stale setpoint its feed-forward carries
 HOLD_MARGIN = 1.1  # a pair holds when its ellipsoids would come this close (scaled): room to brake
 PUSH_MARGIN = 1.2  # a held pair is pushed apart until their scaled distance reaches this
 
@@ -328,6 +330,9 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     out_vel = np.full((D, 3), np.nan)
     out[track] = sp[track]
     out_vel[track] = np.where(clamped[track, None], 0.0, vel_ff[track])
+    # a held full-state setpoint leaves Mellinger at rest FF_REACH * v past its position (kd / kp): a setpoint
+    # that stops being renewed must not carry the drone through the fence
+    out_vel[track, :2] = np.clip(out_vel[track, :2], (lo - sp[track, :2]) / FF_REACH, (hi - sp[track, :2]) / FF_REACH)
     pushed = latch + push
     # a push must not carry a drone toward a third one: where it would, the drone holds at its latch
     where = np.where(hold[:, None], pushed, np.where(track[:, None], sp, pos))
