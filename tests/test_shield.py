@@ -326,3 +326,38 @@ def test_properties_on_random_ticks(pos: list[tuple[float, float, float]], sp: l
             i, j = track[a], track[b]
             scaled = ellipsoid_distance(d.setpoint[j] - d.setpoint[i], CFG.drone_radius, CFG.drone_half_height)
             assert scaled >= 1.0 - 1e-9
+
+
+# ---------------------------------------------------------------- transits (pure planning)
+def _sampled(plan: Any) -> np.ndarray:
+    return np.array([plan.at(t)[0] for t in np.arange(0.0, plan.total + 0.1, 0.05)])  # (T, D, 3)
+
+
+def test_a_transit_plan_keeps_every_pair_apart_through_a_cycle_and_around_the_bar() -> None:
+    from atdrone.deploy.shield import obstacle_distance
+    from atdrone.deploy.transit import plan_transit
+
+    fence = geofence(ARENA, CFG.margin)
+    # three drones each on the next one's place (a cycle no start delay alone solves)
+    start = np.array([[1.0, 1.0, 0.5], [2.0, 1.0, 0.5], [3.0, 1.0, 0.5]])
+    plan = plan_transit(start, np.roll(start, -1, 0), 0.3, 0.125, 0.375, bounds=fence)
+    pts = _sampled(plan)
+    for i in range(3):
+        for j in range(i + 1, 3):
+            assert ellipsoid_distance(pts[:, j] - pts[:, i], 0.125, 0.375).min() >= 1.3 - 1e-6
+    np.testing.assert_allclose(pts[-1], np.roll(start, -1, 0), atol=1e-9)
+    # straight down through 4p2e1o's bar is not a route: it goes around, 0.15 m clear
+    plan = plan_transit(
+        np.array([[2.0, 4.3, 0.5]]), np.array([[1.9, 0.5, 0.5]]), 0.3, 0.125, 0.375, bounds=fence, obstacles=CORNER_BAR
+    )
+    assert obstacle_distance(_sampled(plan)[:, 0, :2], CORNER_BAR).min() >= 0.15 - 1e-6
+
+
+def test_a_transit_that_cannot_be_planned_is_refused() -> None:
+    from atdrone.deploy.transit import TransitBlocked, plan_transit
+
+    # a drone asked to fly to a point inside the bar: no route keeps 0.15 m from it
+    with pytest.raises(TransitBlocked):
+        plan_transit(
+            np.array([[1.0, 1.0, 0.5]]), np.array([[1.5, 2.5, 0.5]]), 0.3, 0.125, 0.375, obstacles=CORNER_BAR, tries=2
+        )

@@ -176,6 +176,19 @@ def closest_approach(
     return np.asarray(np.sqrt((closest * closest).sum(-1)))
 
 
+def obstacle_distance(points: np.ndarray, obstacles: Obstacles) -> np.ndarray:
+    """Distance (N,) from each point (N, 2) to the nearest obstacle's edge (negative inside; inf: none)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    best = np.full(len(points), np.inf)
+    for cx, cy, hx, hy in obstacles.boxes:
+        q = np.abs(points - np.array([cx, cy])) - np.array([hx, hy])
+        outside = np.maximum(q, 0.0)
+        best = np.minimum(best, np.hypot(outside[:, 0], outside[:, 1]) + np.minimum(q.max(1), 0.0))
+    for cx, cy, radius in obstacles.discs:
+        best = np.minimum(best, np.hypot(points[:, 0] - cx, points[:, 1] - cy) - radius)
+    return best
+
+
 def push_out_of_obstacles(points: np.ndarray, obstacles: Obstacles, clearance: float) -> tuple[np.ndarray, np.ndarray]:
     """Points (D, 2) moved to ``clearance`` outside every obstacle they are closer to; and which moved (D,)."""
     out = np.array(points, dtype=np.float64)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from atdrone.deploy.shield import ellipsoid_distance
+from atdrone.deploy.shield import Obstacles, ellipsoid_distance, obstacle_distance
 
 
 class TransitBlocked(RuntimeError):
@@ -105,6 +105,8 @@ def plan_transit(
     sample: float = 0.1,
     tries: int = 20,
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    obstacles: Obstacles | None = None,
+    clearance: float = 0.15,
 ) -> Transit:
     """Start delays (and detours) for transits that keep every pair ``margin`` clear (see the module docstring)."""
     start = np.asarray(start, dtype=np.float64).reshape(-1, 3)
@@ -136,7 +138,7 @@ def plan_transit(
     rng = np.random.default_rng(0)
     orders = [list(range(D)), sorted(range(D), key=lambda i: -straight[i]), sorted(range(D), key=lambda i: straight[i])]
     orders += [list(rng.permutation(D)) for _ in range(tries)]
-    for use_detours in (False, True):
+    for use_detours in (False, True):  # detours also lead around obstacles
         for order in orders:
             paths = np.zeros((D, len(times), 3))
             delay = np.full(D, np.nan)
@@ -147,6 +149,10 @@ def plan_transit(
                     options += _detours(start[k], end[k], bounds)
                 placed = False
                 for w in options:
+                    if obstacles is not None:  # the route itself must keep clear of the obstacles
+                        route = path(k, 0.0, w)[:, :2]
+                        if (obstacle_distance(route, obstacles) < clearance - 1e-9).any():
+                            continue
                     for d in np.arange(0.0, max_delay + 1e-9, delay_step):
                         paths[k] = path(k, float(d), w)
                         if _clear(paths, k, order[:n], radius, half_height, pair):
