@@ -104,6 +104,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=100)
     parser.add_argument("--work-dir", default="reports/deploy_gap")
     parser.add_argument("--out", default="benchmarks/results/deploy_gap_4p2e1o.json")
+    parser.add_argument("--report-only", action="store_true", help="aggregate the chunks already flown; fly none")
     args = parser.parse_args()
     work = Path(args.work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -113,12 +114,15 @@ def main() -> None:
     # its finished episodes, and its reason is reported), at most twice the chunks needed
     while sum(c["episodes_flown"] for c in chunks) < args.episodes and k < 2 * math.ceil(args.episodes / args.chunk):
         path = work / f"chunk_{k:03d}.json"
+        if not path.is_file() and args.report_only:
+            break
         if not path.is_file():
             print(f"[deploy_gap] chunk {k}: {args.chunk} episodes", flush=True)
             atomic_write_text(path, json.dumps(_chunk(args, k, work), indent=2) + "\n")
         chunks.append(json.loads(path.read_text()))
         k += 1
-        _report(args, chunks, final=False)  # the report so far, after every chunk
+        if not args.report_only:
+            _report(args, chunks, final=False)  # the report so far, after every chunk
     print(json.dumps(_report(args, chunks, final=True), indent=2))
 
 
