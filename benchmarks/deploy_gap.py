@@ -74,7 +74,7 @@ def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool)
     report = {
         "config": f"configs/deploy/gap_4p2e1o.json, clock rate {args.clock_rate}, horizon {args.horizon}, "
         f"{len(chunks)} chunks of {args.chunk}, seeds {args.seed}..{args.seed + len(chunks) - 1}",
-        "complete": final,
+        "complete": int(sum(c["episodes_flown"] for c in chunks)) >= args.episodes,
         "member": member,
         "episodes_flown": int(sum(c["episodes_flown"] for c in chunks)),
         "episodes_compared": len(episodes),
