@@ -51,7 +51,9 @@ def sim_doc(tmp_path: Path, registry_member: tuple[str, str], **changes: Any) ->
         member={"registry": db, "id": member},
         horizon=40,
         out_dir=str(tmp_path / "flights"),
-        sim={"clock_rate": RATE, "mocap_rate": 50.0, "mocap_noise": 0.002, "mocap_latency": 0.01},
+        # straight over UDP: through cflib 0.1.34 a radio starved for 2 s on a loaded host deadlocks the
+        # sender (docs/deploy.md); the radio model has its own test in test_simfleet.py
+        sim={"clock_rate": RATE, "mocap_rate": 50.0, "mocap_noise": 0.002, "mocap_latency": 0.01, "radio_model": False},
         # a shared CI machine may pause the process for a while: tolerances for that (the hung-loop test sets
         # the real heartbeat timeout)
         radio={"toc_cache": str(TOC_CACHE), "heartbeat_timeout": 0.5},

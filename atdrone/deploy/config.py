@@ -101,7 +101,9 @@ class SimSettings:
     from a frame; lag s: the attitude loop's lag behind the position controller; battery_drain
     V/s while the motors spin (0.002: 4.1 V to 3.4 V in about 6 minutes, like a Crazyflie's);
     true_frame: how the simulated mocap system is really mounted (default: as ``frame`` says);
-    yaw_deg: the drones' true yaw as placed on the floor (90: facing +y, as they should).
+    yaw_deg: the drones' true yaw as placed on the floor (90: facing +y, as they should);
+    radio_model: the drones are reached through the Crazyradio model (one shared dongle, a
+    one-packet queue, ~1000 packets/s) rather than straight over UDP.
     """
 
     clock_rate: float = field(default=1.0, metadata=_check(_positive))
@@ -111,6 +113,7 @@ class SimSettings:
     mocap_dropout: float = field(default=0.0, metadata=_check(lambda v: None if 0 <= v < 1 else "must be in [0, 1)"))
     lag: float = field(default=0.05, metadata=_check(_positive))
     yaw_deg: float = 90.0
+    radio_model: bool = True
     battery_drain: float = field(default=0.002, metadata=_check(_non_negative))
     true_frame: FrameTransform | None = None
 

@@ -210,6 +210,7 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
                     clock,
                     DroneDynamics(lag=cfg.sim.lag, battery_drain=cfg.sim.battery_drain),
                     yaw=math.radians(cfg.sim.yaw_deg),
+                    radio=cfg.sim.radio_model,
                 )
             )
             truth = fleet.truth
