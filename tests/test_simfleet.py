@@ -481,6 +481,6 @@ def test_bridge_open_times_out_on_a_silent_port(tmp_path) -> None:
         t0 = time.monotonic()
         with pytest.raises(BridgeError, match="cannot connect ghost within 1 s"):
             bridge.open()
-        assert time.monotonic() - t0 < 3.0
+        assert time.monotonic() - t0 < 6.0  # 1 s and the clean-up, with room for a loaded host
     finally:
         silent.close()
