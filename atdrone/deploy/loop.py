@@ -393,6 +393,7 @@ class Flight:
         )
         end[:, :2] = np.clip(end[:, :2], lo, hi)
         end[~flying] = start[~flying]
+        lo_hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
         planning = self._worker.submit(
             plan_transit,
             start,
@@ -400,6 +401,9 @@ class Flight:
             self.cfg.goto_speed,
             self.shield_cfg.drone_radius,
             self.shield_cfg.drone_half_height,
+            bounds=lo_hi,
+            obstacles=self.obstacles,
+            clearance=self.shield_cfg.obstacle_clearance,
         )
         while not planning.done():  # the loop keeps ticking (and the heartbeat fed) while the plan is made
             if not self._hold_tick():
