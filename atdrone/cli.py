@@ -529,6 +529,10 @@ def run_deploy(args: argparse.Namespace) -> int:
         from atdrone.deploy.flightlog import format_summary
 
         print(format_summary(result.summary))
+    if result.ended_early:  # an armed flight that did not fly its episodes: every drone landed first
+        flown = f"{result.episodes_flown}/{cfg.episodes}"
+        _error(args, f"flight ended early after {flown} episode(s): {result.ended_early}")
+        return 1
     if result.gap is not None:
         print(format_gap(result.gap))
         assert result.log_dir is not None

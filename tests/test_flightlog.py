@@ -164,3 +164,29 @@ def test_log_to_mlflow_records_a_deploy_run(tmp_path: Path, monkeypatch: pytest.
     assert m["deploy/latency/tick_p99"] == pytest.approx(np.percentile(LATENCY[:, 1], 99))
     artifacts = {a.path for a in MlflowClient(tracking_uri=uri).list_artifacts(run_id)}
     assert artifacts == set(FILES)
+
+
+def test_ground_speed_is_the_median_while_tracking_by_hand() -> None:
+    """Pursuer p moves 0.03 m per 0.1 s tick (0.30 m/s) for 4 ticks, then is held 3 ticks (separation) and
+    does not move; pursuer q moves 0.02 m per tick (0.20 m/s); the evader's 0.06 m per tick never counts."""
+    from atdrone.deploy.flightlog import ground_speed
+
+    rows = []
+    for k in range(8):
+        held = "separation" if k >= 5 else ""
+        x_p = 0.03 * min(k, 4)
+        rows.append(
+            dict(t=0.1 * k, episode=0, step=k, drone="p", role="learner", x=x_p, y=1.0, state="flying", events=held)
+        )
+        rows.append(
+            dict(t=0.1 * k, episode=0, step=k, drone="q", role="partner", x=0.02 * k, y=2.0, state="flying", events="")
+        )
+        rows.append(
+            dict(t=0.1 * k, episode=0, step=k, drone="e", role="evader", x=0.06 * k, y=3.0, state="flying", events="")
+        )
+    flight = pd.DataFrame(rows)
+    # p: 4 tracking intervals at 0.30 and one (4 -> 5, the second tick held) excluded, the rest held;
+    # q: 7 intervals at 0.20 -> the median of [0.3] * 4 + [0.2] * 7 is 0.20
+    assert ground_speed(flight) == pytest.approx(0.20)
+    assert ground_speed(flight[flight.drone != "q"]) == pytest.approx(0.30)
+    assert math.isnan(ground_speed(flight[flight.role == "evader"]))

@@ -283,5 +283,5 @@ def test_scaled_clock_runs_the_frame_rate_in_clock_time() -> None:
     run_for(mocap, clock, 3.0)  # 3 clock seconds: 300 frames in 0.3 wall seconds
     wall = time.perf_counter() - started
     assert wall < 0.6
-    assert 240 <= mocap.frames <= 305, mocap.frames
+    assert 150 <= mocap.frames <= 305, mocap.frames  # at clock rate 1 it would be 30; a loaded host drops some
     assert mocap.latest()["a"].t == pytest.approx(3.0, abs=0.1)

@@ -15,13 +15,15 @@ Keys (every one documented on its dataclass below):
 - ``evaders``: ``"virtual"`` (simulated evaders the pursuers see, shown in the log) or
   ``"drones"`` (real drones flying the task's escape policy).
 - ``drones``: name, radio URI, rigid-body name and role of every drone.
-- ``flight_height``, ``backend`` (``sim`` or ``cflib``), ``mocap``, ``frame``, ``shield``,
+- ``flight_height``, ``backend`` (``sim`` or ``cflib``), ``mocap``, ``frame``,
+  ``frame_reference`` (a marker the preflight checks the frame with), ``radio``, ``shield``,
   ``sim`` (the simulated fleet and mocap), ``faults`` (injected on the sim backend),
   ``episodes``, ``horizon``, ``seed``, ``out_dir``.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -32,7 +34,16 @@ from atdrone.deploy.mocap import FrameTransform
 from atdrone.deploy.shield import ShieldConfig
 
 ROLES = ("learner", "partner", "evader")
-FAULT_KINDS = ("mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall")
+FAULT_KINDS = (
+    "mocap_dropout",
+    "link_loss",
+    "drift",
+    "low_battery",
+    "policy_stall",
+    "loop_hang",
+    "exception",
+)
+NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 @dataclass(frozen=True)
@@ -87,9 +98,12 @@ class SimSettings:
 
     clock_rate: simulated seconds per wall second (1: real time); mocap_rate Hz;
     mocap_noise m (std); mocap_latency s; mocap_dropout: probability a body is missing
-    from a frame; tau s: how fast a drone tracks its setpoint; battery_drain V/s while the
-    motors spin (0.002: 4.1 V to 3.4 V in about 6 minutes, like a Crazyflie's); true_frame: how the
-    simulated mocap system is really mounted (default: as ``frame`` says).
+    from a frame; lag s: the attitude loop's lag behind the position controller; battery_drain
+    V/s while the motors spin (0.002: 4.1 V to 3.4 V in about 6 minutes, like a Crazyflie's);
+    true_frame: how the simulated mocap system is really mounted (default: as ``frame`` says);
+    yaw_deg: the drones' true yaw as placed on the floor (90: facing +y, as they should);
+    radio_model: the drones are reached through the Crazyradio model (one shared dongle, a
+    one-packet queue, ~1000 packets/s) rather than straight over UDP.
     """
 
     clock_rate: float = field(default=1.0, metadata=_check(_positive))
@@ -97,7 +111,9 @@ class SimSettings:
     mocap_noise: float = field(default=0.002, metadata=_check(_non_negative))
     mocap_latency: float = field(default=0.01, metadata=_check(_non_negative))
     mocap_dropout: float = field(default=0.0, metadata=_check(lambda v: None if 0 <= v < 1 else "must be in [0, 1)"))
-    tau: float = field(default=0.1, metadata=_check(_positive))
+    lag: float = field(default=0.05, metadata=_check(_positive))
+    yaw_deg: float = 90.0
+    radio_model: bool = True
     battery_drain: float = field(default=0.002, metadata=_check(_non_negative))
     true_frame: FrameTransform | None = None
 
@@ -108,15 +124,49 @@ class Fault:
 
     kind: mocap_dropout (``drone`` or the whole system when empty, for ``duration`` s),
     link_loss (``drone``), drift (``drone`` pushed by ``accel`` m/s^2), low_battery
-    (``drone`` at ``volts``), policy_stall (the policy takes ``duration`` s).
+    (``drone`` at ``volts``), policy_stall (the policy takes ``duration`` s), loop_hang
+    (the loop thread hangs ``duration`` s), exception (the loop raises).
     """
 
-    kind: Literal["mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall"]
+    kind: Literal["mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall", "loop_hang", "exception"]
     at: float = field(metadata=_check(_non_negative))
     drone: str = field(default="", metadata={"empty_ok": True})
     duration: float = field(default=1.0, metadata=_check(_non_negative))
     accel: tuple[float, float, float] = (0.5, 0.0, 0.0)
     volts: float = field(default=3.2, metadata=_check(_positive))
+
+
+@dataclass(frozen=True)
+class FrameReference:
+    """A rigid body fixed in the arena at a known pose (a marker at the arena's corner): preflight checks that
+    motion capture, through ``frame``, puts it there (within 0.1 m and 10 degrees)."""
+
+    body: str
+    pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    yaw_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class Radio:
+    """How the bridge talks to the drones.
+
+    pose: ``extpose`` (position and quaternion: the estimator's yaw follows motion capture)
+    or ``extpos`` (position only); pose_rate Hz the poses are sent at (30-50 for a few
+    drones per radio); reset_estimator: set ``kalman.initialYaw`` and reset the estimator
+    before flying; connect_timeout s; toc_cache: cflib's TOC cache directory ("": the
+    user's cache directory); extpos_std m and extquat_std rad: the estimator's trust in
+    motion capture; heartbeat_timeout s: the dead-man heartbeat feeds the firmware's
+    emergency-stop watchdog only while the loop ticked this recently.
+    """
+
+    pose: Literal["extpose", "extpos"] = "extpose"
+    pose_rate: float = field(default=50.0, metadata=_check(lambda v: None if 1 <= v <= 200 else "must be in [1, 200]"))
+    reset_estimator: bool = True
+    connect_timeout: float = field(default=10.0, metadata=_check(_positive))
+    toc_cache: str = field(default="", metadata={"empty_ok": True})
+    extpos_std: float = field(default=0.01, metadata=_check(_positive))
+    extquat_std: float = field(default=0.01, metadata=_check(_positive))
+    heartbeat_timeout: float = field(default=0.3, metadata=_check(_positive))
 
 
 @dataclass(frozen=True)
@@ -133,9 +183,10 @@ class DeployConfig:
     flight_height: float = field(default=0.5, metadata=_check(_positive))
     takeoff_duration: float = field(default=2.0, metadata=_check(_positive))
     goto_speed: float = field(default=0.3, metadata=_check(_positive))  # m/s flying back to spawn between episodes
-    transit_layer: float = field(default=0.15, metadata=_check(_positive))  # m between the drones' transit altitudes
     mocap: Mocap = field(default_factory=Mocap)
     frame: FrameTransform = field(default_factory=FrameTransform)
+    frame_reference: FrameReference | None = None
+    radio: Radio = field(default_factory=Radio)
     shield: ShieldConfig = field(default_factory=ShieldConfig)
     sim: SimSettings = field(default_factory=SimSettings)
     faults: tuple[Fault, ...] = ()
@@ -205,11 +256,12 @@ def validate(cfg: DeployConfig) -> None:
     lo, hi = cfg.shield.z_limits
     if not lo <= cfg.flight_height <= hi:
         raise ConfigError("flight_height", f"must lie within shield.z_limits {[lo, hi]}, got {cfg.flight_height}")
-    top = cfg.flight_height + cfg.transit_layer * (len(cfg.drones) - 1)
-    if top > hi:
+    if not NAME.match(cfg.name):
         raise ConfigError(
-            "transit_layer", f"{len(cfg.drones)} drones' transit layers reach {top:.2f} m, above shield.z_limits {hi}"
+            "name", f"must be 1-64 letters, digits, '_', '.', '-' (not starting with those), got {cfg.name!r}"
         )
+    if cfg.frame_reference is not None and cfg.frame_reference.body in {d.rigid_body for d in cfg.drones}:
+        raise ConfigError("frame_reference.body", f"{cfg.frame_reference.body!r} is a drone's rigid body")
 
 
 def load_deploy(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> DeployConfig:

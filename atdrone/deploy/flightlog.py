@@ -177,8 +177,9 @@ class FlightLog:
         frame = pd.DataFrame(rows, columns=list(_EPISODE_COLUMNS))
         return frame.astype({"episode": np.int64, "steps": np.int64, "captured": np.int64, "reward": np.float64})
 
-    def write(self, directory: Path) -> Path:
-        """Write the log directory (every file atomically); return it."""
+    def write_rows(self, directory: Path) -> Path:
+        """Write the rows so far (flight.parquet, episodes.parquet, meta.json, summary.json), each atomically:
+        called after every episode, so a flight that dies leaves every finished episode on disk."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         flight, episodes = self.frame(), self.episodes()
@@ -187,6 +188,13 @@ class FlightLog:
         meta = {**self.meta, "overruns": self.overruns, "geometry": self.geometry}
         atomic_write_text(directory / "meta.json", _dumps(meta))
         atomic_write_text(directory / "summary.json", _dumps(summarize(directory)))
+        return directory
+
+    def write(self, directory: Path) -> Path:
+        """Write the log directory (every file atomically, the plots too); return it."""
+        directory = self.write_rows(directory)
+        flight = self.frame()
+        meta = {**self.meta, "overruns": self.overruns, "geometry": self.geometry}
         plot_trajectories(flight, self.geometry, directory / "trajectories.png", title=_title(meta))
         animate(flight, self.geometry, directory / "flight.gif")
         return directory
@@ -249,6 +257,25 @@ def separation(flight: pd.DataFrame) -> dict[str, Any]:
     }
 
 
+HOLDS = ("separation", "policy_late", "nan_setpoint")  # shield rules that hold a drone in place
+
+
+def ground_speed(flight: pd.DataFrame) -> float:
+    """The median horizontal speed (m/s) of the pursuer drones between consecutive ticks of the policy legs
+    while they track (rows with step >= 0, airborne, measured on both ticks, held on neither: a hold is the
+    shield's, not the policy's; the trained speed is 0.30 m/s)."""
+    legs = flight[(flight["step"] >= 0) & flight["role"].isin(("learner", "partner")) & flight["state"].isin(AIRBORNE)]
+    speeds = []
+    for _, rows in legs.sort_values("t").groupby(["drone", "episode"]):
+        dt = np.diff(rows["t"].to_numpy(np.float64))
+        dxy = np.hypot(np.diff(rows["x"].to_numpy(np.float64)), np.diff(rows["y"].to_numpy(np.float64)))
+        held = rows["events"].astype(str).str.contains("|".join(HOLDS)).to_numpy()
+        ok = (dt > 0) & np.isfinite(dxy) & ~held[1:] & ~held[:-1]
+        speeds.append(dxy[ok] / dt[ok])
+    values = np.concatenate(speeds) if speeds else np.zeros(0)
+    return float(np.median(values)) if len(values) else math.nan
+
+
 def latency_percentiles(flight: pd.DataFrame) -> dict[str, dict[str, float]]:
     """p50/p95/p99/max and count of each latency stage over ticks (one value per tick, finite ones)."""
     columns = [c for c in flight.columns if c.startswith("latency_")]
@@ -293,6 +320,10 @@ def summarize(directory: Path) -> dict[str, Any]:
         "latency": latency_percentiles(flight),
         "overruns": int(meta.get("overruns", 0)),
         **separation(_physical(flight, meta)),
+        "ground_speed_median": ground_speed(flight),
+        "ended_early": str(meta.get("ended_early", "")),
+        "episodes_flown": int(meta.get("episodes_flown", len(episodes))),
+        "mocap_callback_errors": int(meta.get("mocap_callback_errors", 0)),
         "battery_min": {str(k): float(v) for k, v in battery.items()},
     }
     summary["interventions_total"] = int(sum(summary["interventions"].values()))
@@ -326,6 +357,8 @@ def format_summary(summary: Mapping[str, Any]) -> str:
             if summary.get("min_separation_pair")
             else "- (fewer than two drones airborne)"
         ),
+        f"  pursuers' median ground speed in policy legs: {_number(summary.get('ground_speed_median'), '.3f', ' m/s')}"
+        + (f"; ENDED EARLY: {summary['ended_early']}" if summary.get("ended_early") else ""),
         "  battery min: "
         + (", ".join(f"{k} {_number(v, '.2f', ' V')}" for k, v in summary["battery_min"].items()) or "-"),
     ]

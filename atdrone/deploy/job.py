@@ -33,14 +33,15 @@ from atdrone.deploy.bridge import Bridge, CflibBridge
 from atdrone.deploy.clock import Clock, RealClock, ScaledClock
 from atdrone.deploy.config import DeployConfig, task_of
 from atdrone.deploy.flightlog import FlightLog, log_to_mlflow, summarize
-from atdrone.deploy.loop import FaultClock, Flight, StopRequest, Team, command
+from atdrone.deploy.loop import FaultClock, Flight, StopRequest, Team
 from atdrone.deploy.mocap import MocapSource, MotionCaptureSource, SimMocap
 from atdrone.deploy.preflight import (
     Preflight,
+    check_estimates,
     check_heading,
     check_observation,
+    check_reference,
     check_spawn,
-    hover_and_turn,
     spawn_regions,
 )
 from atdrone.errors import UserError
@@ -55,7 +56,8 @@ class DeployError(UserError, RuntimeError):
 
 @dataclass
 class DeployResult:
-    """What a deploy job did: its checks, whether it flew, its log directory and summary."""
+    """What a deploy job did: its checks, whether it flew, its log directory and summary; ``ended_early`` the
+    one-line reason an armed flight ended before its episodes were flown ("" when it did not)."""
 
     preflight: Preflight
     flown: bool
@@ -64,6 +66,10 @@ class DeployResult:
     run_id: str = ""
     gap: dict[str, Any] | None = None
     sent: dict[str, int] | None = None
+    ended_early: str = ""
+    episodes_flown: int = 0
+    fleet: dict[str, dict[str, Any]] | None = None  # sim backend: per drone what the simulated firmware saw
+    t0: float = 0.0  # clock time the flight started (the faults' time origin)
 
 
 def effective_task(cfg: DeployConfig) -> TaskConfig:
@@ -93,7 +99,19 @@ def member_checkpoint(cfg: DeployConfig) -> Path:
         if not member.get("checkpoint"):
             raise DeployError(f"member.id: member {ref.id!r} has no checkpoint")
         path = Path(member["checkpoint"])
-        return path if path.is_absolute() else Path(ref.registry).parent / path
+        path = path if path.is_absolute() else Path(ref.registry).parent / path
+        from atdrone.models.checkpoint import CheckpointError, read_header
+
+        try:
+            digest = read_header(path)["sha256"]
+        except CheckpointError as exc:
+            raise DeployError(f"member.id: member {ref.id!r}: {exc}") from None
+        if member.get("sha256") and digest != member["sha256"]:
+            raise DeployError(
+                f"member.id: member {ref.id!r}: checkpoint {path} has sha256 {digest[:12]}..., "
+                f"the registry recorded {str(member['sha256'])[:12]}...: not the member registered"
+            )
+        return path
     from atdrone.tracking import model_checkpoint
 
     try:
@@ -129,31 +147,56 @@ def build_team(cfg: DeployConfig) -> tuple[Team, str]:
 # ------------------------------------------------------------------ backends
 @dataclass
 class Backend:
-    """A connected bridge, a running mocap source, their clock, and the faults to inject."""
+    """A connected bridge, a running mocap source, their clock, the faults to inject (and the sim fleet)."""
 
     bridge: Bridge
     mocap: MocapSource
     clock: Clock
     faults: FaultClock
+    fleet: Any = None
 
 
 def ground_positions(cfg: DeployConfig, task: TaskConfig, seed: int) -> np.ndarray:
-    """Where the simulated drones stand before takeoff: a spawn draw of the task (z = 0)."""
+    """Where the simulated drones stand before takeoff: a spawn draw of the task whose drones are clear of each
+    other's separation ellipsoids (z = 0)."""
+    from atdrone.deploy.transit import separated_spawn
     from atdrone.envs.core import spawn
 
-    pos, _ = spawn(task, np.random.default_rng(seed), 1)
+    rng = np.random.default_rng(seed)
     pursuers = cfg.role_names("learner") + cfg.role_names("partner")
-    xy = {n: pos[0, i] for i, n in enumerate(pursuers)}
-    xy.update({n: pos[0, len(pursuers) + j] for j, n in enumerate(cfg.role_names("evader"))})
+    evaders = cfg.role_names("evader")
+
+    def draw() -> tuple[np.ndarray, np.ndarray]:
+        pos, _ = spawn(task, rng, 1)
+        return pos[0, : len(pursuers)], pos[0, len(pursuers) : len(pursuers) + len(evaders)]
+
+    pos_p, pos_e = separated_spawn(draw, cfg.shield.drone_radius, cfg.shield.drone_half_height)
+    xy = {n: pos_p[i] for i, n in enumerate(pursuers)}
+    xy.update({n: pos_e[j] for j, n in enumerate(evaders)})
     return np.array([[*xy[d.name], 0.0] for d in cfg.drones])
+
+
+def _bridge(cfg: DeployConfig, uris: dict[str, str], clock: Clock) -> CflibBridge:
+    r = cfg.radio
+    return CflibBridge(
+        uris,
+        clock,
+        yaw=math.pi / 2,  # every drone faces +y, as every episode starts in training, and keeps that yaw
+        extpos_std=r.extpos_std,
+        extquat_std=r.extquat_std,
+        connect_timeout=r.connect_timeout,
+        cache_dir=r.toc_cache or None,
+        pose_rate=r.pose_rate,
+        heartbeat_timeout=r.heartbeat_timeout,
+    )
 
 
 @contextmanager
 def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
-    """The configured backend, connected; everything closed on exit."""
-    names = [d.name for d in cfg.drones]
+    """The configured backend, connected, poses flowing, estimators reset; everything closed on exit."""
     bodies = {d.rigid_body: d.name for d in cfg.drones}
     faults = FaultClock()
+    fleet = None
     with ExitStack() as stack:
         mocap: MocapSource
         if cfg.backend == "sim":
@@ -162,18 +205,23 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
             clock: Clock = ScaledClock(cfg.sim.clock_rate)
             fleet = stack.enter_context(
                 SimFleet(
-                    names,
+                    [d.name for d in cfg.drones],
                     ground_positions(cfg, task, cfg.seed + 7919),
                     clock,
-                    DroneDynamics(tau=cfg.sim.tau, battery_drain=cfg.sim.battery_drain),
+                    DroneDynamics(lag=cfg.sim.lag, battery_drain=cfg.sim.battery_drain),
+                    yaw=math.radians(cfg.sim.yaw_deg),
+                    radio=cfg.sim.radio_model,
                 )
             )
             truth = fleet.truth
-            by_body = {d.rigid_body: d.name for d in cfg.drones}
+            reference = cfg.frame_reference
 
             def bodies_truth() -> dict[str, tuple[np.ndarray, float]]:
                 t = truth()
-                return {b: t[n] for b, n in by_body.items()}
+                seen = {b: t[n] for b, n in bodies.items()}
+                if reference is not None:  # the marker really is where the config says
+                    seen[reference.body] = (np.array(reference.pos, dtype=float), math.radians(reference.yaw_deg))
+                return seen
 
             mocap = SimMocap(
                 bodies_truth,
@@ -186,29 +234,36 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
                 seed=cfg.seed,
                 true_transform=cfg.sim.true_frame or cfg.frame,
             )
-            bridge: Bridge = CflibBridge(fleet.uris)
+            bridge = _bridge(cfg, fleet.uris, clock)
             _schedule(cfg, faults, fleet, mocap, clock)
         else:
             clock = RealClock()
+            wanted = [d.rigid_body for d in cfg.drones] + ([cfg.frame_reference.body] if cfg.frame_reference else [])
             mocap = MotionCaptureSource(
                 cfg.mocap.type,
                 {"hostname": cfg.mocap.hostname, **cfg.mocap.options}
                 if cfg.mocap.hostname
                 else dict(cfg.mocap.options),
-                [d.rigid_body for d in cfg.drones],
+                wanted,
                 cfg.frame,
                 clock,
                 connect_timeout=cfg.mocap.connect_timeout,
             )
-            bridge = CflibBridge({d.name: d.uri for d in cfg.drones})
+            bridge = _bridge(cfg, {d.name: d.uri for d in cfg.drones}, clock)
         mocap.start()
         stack.callback(mocap.stop)
         bridge.open()
         stack.callback(bridge.close)
-        mocap.on_frame(
-            lambda poses: bridge.send_extpos({bodies[b]: tuple(p.pos) for b, p in poses.items() if b in bodies})
+        with_quat = cfg.radio.pose == "extpose"
+        mocap.on_frame(  # posting only fills the bridge's mailbox: the mocap thread never waits on the radio
+            lambda poses: bridge.post_poses(
+                {bodies[b]: (p.pos, p.quat if with_quat else None) for b, p in poses.items() if b in bodies}
+            )
         )
-        yield Backend(bridge, mocap, clock, faults)
+        if cfg.radio.reset_estimator:
+            clock.sleep(0.3)  # a few poses reach the drones first
+            bridge.reset_estimators()
+        yield Backend(bridge, mocap, clock, faults, fleet)
 
 
 def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap, clock: Clock) -> None:
@@ -224,8 +279,12 @@ def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap
             fire = partial(fleet.push, f.drone, np.array(f.accel))
         elif f.kind == "low_battery":
             fire = partial(fleet.set_battery, f.drone, f.volts)
-        else:
+        elif f.kind == "policy_stall":
             fire = partial(setattr, faults, "stall", f.duration)
+        elif f.kind == "loop_hang":
+            fire = partial(setattr, faults, "hang", f.duration)
+        else:  # exception
+            fire = partial(setattr, faults, "raise_now", True)
         faults.add(f.at, f.drone, f.kind, fire)
 
 
@@ -254,10 +313,22 @@ def run_preflight(flight: Flight, cfg: DeployConfig, task: TaskConfig, wait: flo
         [f"no fresh pose of {', '.join(stale)}"] if stale else [],
         f"{len(flight.names)} rigid bodies tracked",
     )
+    ref = cfg.frame_reference
+    if ref is None:
+        pre.add("frame", ["no frame_reference marker configured: the frame cannot be checked"], "")
+    else:
+        marker = flight.mocap.latest().get(ref.body)
+        seen = None if marker is None else (marker.pos, marker.yaw)
+        pre.add("frame", check_reference(ref.body, seen, ref.pos, ref.yaw_deg), "the reference marker is where stated")
     p_boxes, e_boxes = spawn_regions(task)
     boxes = p_boxes[: len(flight.pursuers)] + e_boxes[: len(flight.evader_drones)]
     pre.add("spawn", check_spawn(flight.names, pos, boxes, cfg.spawn_tolerance), "every drone inside its spawn region")
     pre.add("heading", check_heading(flight.names, yaw), "every drone faces +y")
+    pre.add(
+        "estimate",
+        check_estimates(flight.names, pos, yaw, flight.bridge.estimates()),
+        "every onboard state estimate agrees with motion capture (0.1 m, 10 deg)",
+    )
     battery = flight.bridge.battery()
     low = [
         f"{n} at {battery.get(n, math.nan):.2f} V"
@@ -274,7 +345,6 @@ def run_preflight(flight: Flight, cfg: DeployConfig, task: TaskConfig, wait: flo
     else:
         obs_problems = ["poses missing: cannot compare observations"]
     pre.add("observation", obs_problems, "the loop's observations equal the simulator's at the live poses")
-    pre.add("command path", hover_and_turn(task, cfg.flight_height, command), "hover-and-turn follows the turn rule")
     return pre
 
 
@@ -286,7 +356,8 @@ def plan_text(cfg: DeployConfig, member: str, task: TaskConfig) -> str:
         f"plan: fly member {member} on {task.name} ({cfg.backend} backend), {cfg.episodes} episode(s) of at most "
         f"{task.task.task_horizon} steps at {cfg.flight_height} m; partners {partners}; evaders {cfg.evaders}\n"
         f"      drones: {drones}\n"
-        f"      shield: fence margin {cfg.shield.margin} m, separation {cfg.shield.min_separation} m, "
+        f"      shield: fence margin {cfg.shield.margin} m, separation ellipsoid {cfg.shield.drone_radius} / "
+        f"{cfg.shield.drone_half_height} m per drone, "
         f"stale pose {cfg.shield.stale_pose} s, battery {cfg.shield.min_battery} V"
     )
 
@@ -344,19 +415,47 @@ def _deploy(
             return DeployResult(pre, False, sent=dict(backend.bridge.sent()))
         say(f"[deploy] arming and flying {cfg.episodes} episode(s)")
         started = time.perf_counter()
+        log_dir = _log_dir(cfg)
+        flight.on_episode = partial(_write_rows, log, log_dir)  # the log so far, after every episode
         flight.t0 = backend.clock.now()
-        flight.run()
-        log.overruns = flight.ticks.overruns
+        try:
+            flight.run()  # lands every drone before it returns, whatever happened; never raises
+        finally:
+            log.overruns = flight.ticks.overruns
+            log.meta.update(
+                ended_early=flight.aborted,
+                episodes_flown=flight.episodes_flown,
+                mocap_callback_errors=getattr(backend.mocap, "callback_errors", 0),
+            )
+            log.write(log_dir)
         sent = dict(backend.bridge.sent())
-    stamp = time.strftime("%Y%m%d_%H%M%S")
-    log_dir = log.write(Path(cfg.out_dir) / f"{cfg.name}-{stamp}")
+        fleet = backend.fleet.report() if backend.fleet is not None else None
+        t0 = flight.t0
     summary = summarize(log_dir)
     run_id = log_to_mlflow(log_dir, tracking_uri, cfg.name)
     say(f"[deploy] flew in {time.perf_counter() - started:.0f} s wall; log {log_dir}; MLflow run {run_id}")
-    result = DeployResult(pre, True, log_dir, summary, run_id, sent=sent)
-    if compare:
+    result = DeployResult(
+        pre, True, log_dir, summary, run_id, sent=sent, ended_early=flight.aborted, episodes_flown=flight.episodes_flown
+    )
+    result.fleet, result.t0 = fleet, t0
+    if flight.aborted:
+        say(f"[deploy] flight ended early after {flight.episodes_flown}/{cfg.episodes} episode(s): {flight.aborted}")
+    elif compare:
         result.gap = simulation_gap(cfg, task, team, summary)
     return result
+
+
+def _write_rows(log: FlightLog, directory: Path) -> None:
+    log.write_rows(directory)
+
+
+def _log_dir(cfg: DeployConfig) -> Path:
+    """A new directory name under out_dir for this flight (the name is checked: no path separators)."""
+    base = Path(cfg.out_dir) / f"{cfg.name}-{time.strftime('%Y%m%d_%H%M%S')}"
+    path, k = base, 1
+    while path.exists():
+        path, k = base.with_name(f"{base.name}-{k}"), k + 1
+    return path
 
 
 def simulation_gap(cfg: DeployConfig, task: TaskConfig, team: Team, flown: dict[str, Any]) -> dict[str, Any]:

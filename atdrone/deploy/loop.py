@@ -1,33 +1,41 @@
-"""The 10 Hz deploy loop: poses -> observations -> policies -> turn rule -> setpoints -> shield -> bridge.
+"""The 10 Hz deploy loop: poses -> observations -> policies -> reference -> shield -> bridge.
 
 Every tick (0.1 s of the flight's clock):
 
-1. the latest motion-capture pose of every drone (arena frame, timed on arrival);
-2. observations through the project's one observation function
+1. the loop beats the bridge's dead-man heartbeat (a hung loop stops every drone);
+2. the latest motion-capture pose of every drone (arena frame, timed on arrival);
+3. observations through the project's one observation function
    (:func:`~atdrone.envs.observation.observe`), from the measured positions and the
-   headings the loop commanded (the policies' own headings, as in training);
-3. the learner policy in the learner slots and the partner policies in theirs;
-4. the simulator's turn rule and a position setpoint one step ahead along the new
-   heading at the flight height (:func:`command`); the evaders (virtual ones, or
-   setpoints for evader drones) move by the simulator's escape step;
-5. the shield (:mod:`atdrone.deploy.shield`), then the bridge.
+   policies' own headings, as in training;
+4. the policies, run in a worker thread: a step later than ``shield.policy_late`` holds
+   every drone from outside the policy call, one late for ``shield.policy_stall`` lands
+   them all;
+5. the simulator's turn rule moves each pursuer's **reference**, a virtual unicycle at
+   the trained speed (:func:`advance_reference`); evader drones' references move by the
+   simulator's escape step; the drones get full-state setpoints on the reference with
+   its velocity as feed-forward, at one constant physical yaw;
+6. the shield (:mod:`atdrone.deploy.shield`), then the bridge's mailboxes.
 
 Episodes end as in simulation (every evader captured, a collision by the task's
 distances, the horizon: :func:`~atdrone.envs.core.judge` on the measured poses) or
-by the shield, which also ends the flight. Between episodes the drones fly back to
-spawn positions with the high-level commander. Tick overruns are counted; every
-stage's latency is logged per tick.
+by the shield, which also ends the flight (``aborted`` holds the reason). A captured
+evader drone lands. Between episodes the drones fly to a spawn draw whose drones are
+clear of each other on straight lines scheduled by :func:`~atdrone.deploy.transit.plan_transit`,
+streamed through the same shield. Tick overruns are counted; every stage's latency is
+logged per tick.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import math
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from dataclasses import replace as dc_replace
 from typing import Any
 
 import numpy as np
@@ -38,7 +46,17 @@ from atdrone.deploy.clock import Clock, Ticker
 from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.flightlog import FlightLog
 from atdrone.deploy.mocap import MocapSource, Pose
-from atdrone.deploy.shield import Action, ShieldConfig, ShieldDecision, ShieldInput, shield
+from atdrone.deploy.shield import (
+    Action,
+    Obstacles,
+    ShieldConfig,
+    ShieldDecision,
+    ShieldInput,
+    geofence,
+    push_out_of_obstacles,
+    shield,
+)
+from atdrone.deploy.transit import TransitBlocked, plan_transit, separated_spawn
 from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge, spawn
 from atdrone.envs.evaders import EscapeParams
 from atdrone.envs.geometry import Geometry
@@ -47,21 +65,31 @@ from atdrone.envs.observation import Arena, Poses, observe
 from atdrone.policies.base import DroneBatch, Policy
 
 OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
+LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
+ARRIVED = 0.05  # m: a transit is over when every drone is this close to its target
+AIRBORNE = ("taking_off", "flying", "landing")
+CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
+CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
 
 
-def command(
-    pos: np.ndarray, heading: np.ndarray, action: np.ndarray, arena: Arena, height: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The simulator's turn rule, then a setpoint one step ahead along the new heading.
+def advance_reference(
+    ref: np.ndarray, measured: np.ndarray, heading: np.ndarray, action: np.ndarray, arena: Arena, dt: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The simulator's turn rule and step applied to the reference, not to the measured position.
 
-    pos (D, 2) measured, heading (D,) radians, action (D,) in [-1, 1] -> new headings (D,),
-    setpoints (D, 3) at ``height``, yaw setpoints (D,) in DEGREES (cflib's position
-    setpoint takes degrees; the high-level commander takes radians).
+    ref, measured (D, 2), heading (D,) radians, action (D,) in [-1, 1] -> new headings (D,),
+    new references (D, 2), the setpoint (D, 2) halfway along this tick's step, and the
+    reference velocity (D, 2) (the trained speed along the heading; 0 where a wall stops it).
+    A reference more than :data:`LEASH` ahead of its drone is first pulled back to it.
     """
+    gap = ref - measured
+    dist = np.hypot(gap[:, 0], gap[:, 1])
+    far = dist > LEASH
+    ref = np.where(far[:, None], measured + gap * (LEASH / np.maximum(dist, 1e-12))[:, None], ref)
     new_heading = turn(heading, action)
-    xy = advance(pos, new_heading, arena.step, arena.geometry.width, arena.geometry.height)
-    setpoint = np.concatenate([xy, np.full((len(xy), 1), height)], 1)
-    return new_heading, setpoint, np.degrees(new_heading)
+    new_ref = advance(ref, new_heading, arena.step, arena.geometry.width, arena.geometry.height)
+    vel = (new_ref - ref) / dt
+    return new_heading, new_ref, (ref + new_ref) / 2, vel
 
 
 @dataclass
@@ -94,7 +122,9 @@ class FaultClock:
     """Faults of the sim backend fired once their time comes (callables taking nothing)."""
 
     pending: list[tuple[float, str, str, Callable[[], None]]] = field(default_factory=list)  # at, drone, kind, fire
-    stall: float = 0.0  # seconds the policy step is stalled by a policy_stall fault (consumed once)
+    stall: float = 0.0  # s the next policy step is stalled (a policy_stall fault; consumed once)
+    hang: float = 0.0  # s the loop thread hangs (a loop_hang fault; consumed once)
+    raise_now: bool = False  # an exception fault: the loop raises
 
     def add(self, at: float, drone: str, kind: str, fire: Callable[[], None]) -> None:
         self.pending.append((at, drone, kind, fire))
@@ -108,19 +138,30 @@ class FaultClock:
         return [(drone, f"fault:{kind}") for _, drone, kind, _ in due]
 
 
+class InjectedFault(RuntimeError):
+    """The exception an ``exception`` fault raises inside the loop."""
+
+
 class StopRequest:
-    """Set by SIGINT/SIGTERM (or :meth:`set`): every drone lands."""
+    """Set by SIGINT/SIGTERM (or :meth:`set`): every drone lands; a second request: emergency stop."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
         self.signal: str = ""
+        self.count = 0
 
     def set(self, why: str = "request") -> None:
         self.signal = why
+        self.count += 1
         self.event.set()
 
     def __bool__(self) -> bool:
         return self.event.is_set()
+
+    @property
+    def urgent(self) -> bool:
+        """A second request arrived: the heartbeat sends the emergency stop at once."""
+        return self.count >= 2
 
     @contextmanager
     def handling_signals(self) -> Iterator[None]:
@@ -138,6 +179,44 @@ class StopRequest:
                 signal.signal(s, h)
 
 
+class PolicyRunner:
+    """The team's ``act`` in a worker thread, so a late policy never delays a tick (see the module docstring)."""
+
+    def __init__(self, team: Team, clock: Clock, faults: FaultClock) -> None:
+        self.team, self.clock, self.faults = team, clock, faults
+        self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="policy")
+        self._pending: concurrent.futures.Future[np.ndarray] | None = None
+        self.late_since: float | None = None  # clock time the pending step became late
+
+    def _act(self, *args: Any) -> np.ndarray:
+        if self.faults.stall:
+            stall, self.faults.stall = self.faults.stall, 0.0
+            self.clock.sleep(stall)
+        return self.team.act(*args)
+
+    def act(self, timeout: float, *args: Any) -> np.ndarray | None:
+        """Actions, or None when the step did not finish within ``timeout`` clock seconds (still pending)."""
+        if self._pending is not None and self._pending.done():
+            self._pending.result()  # a stale step finished: re-raise its error, drop its actions
+            self._pending = None
+        if self._pending is None:
+            self._pending = self._pool.submit(self._act, *args)
+        try:
+            actions = self._pending.result(timeout / self.clock.rate)
+        except concurrent.futures.TimeoutError:
+            if self.late_since is None:
+                self.late_since = self.clock.now() - timeout
+            return None
+        self._pending, self.late_since = None, None
+        return actions
+
+    def late_for(self) -> float:
+        return 0.0 if self.late_since is None else self.clock.now() - self.late_since
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+
 class Flight:
     """One flight: the drones, their policies and the loop that flies them (see the module docstring)."""
 
@@ -153,14 +232,20 @@ class Flight:
         faults: FaultClock | None = None,
         stop: StopRequest | None = None,
         progress: Callable[[str], None] | None = None,
+        on_episode: Callable[[], None] | None = None,
     ) -> None:
         self.cfg, self.task, self.team = cfg, task, team
         self.progress = progress or (lambda _message: None)
+        self.on_episode = on_episode or (lambda: None)
         self.bridge, self.mocap, self.clock, self.log = bridge, mocap, clock, log
         self.faults = faults or FaultClock()
         self.stop = StopRequest() if stop is None else stop
         self.arena = Arena.from_config(task)
         self.geometry: Geometry = self.arena.geometry
+        self.obstacles = Obstacles(
+            np.c_[self.geometry.box_center, self.geometry.box_half].reshape(-1, 4),
+            np.c_[self.geometry.disc_center, self.geometry.disc_radius].reshape(-1, 3),
+        )
         self.dt = task.dt
         self.shield_cfg: ShieldConfig = cfg.shield
         learners, partners = cfg.role_names("learner"), cfg.role_names("partner")
@@ -174,14 +259,23 @@ class Flight:
         self.rng = np.random.default_rng(cfg.seed)
         self.escape = EscapeParams()
         self.horizon = cfg.horizon or task.task.task_horizon
+        if self.evader_drones:  # the shield keeps drones 2 * drone_radius apart: a capture counts 5 cm beyond
+            reach = max(task.task.capture_range, 2 * cfg.shield.drone_radius + CAPTURE_SLACK)
+            self.task = task = dc_replace(task, task=dc_replace(task.task, capture_range=reach))
         self.state = dict.fromkeys(self.names, "idle")
         self.ticks = Ticker(clock, self.dt)
         self.t0 = clock.now()
-        self.prev_setpoint = np.full((len(self.names), 3), np.nan)
+        D = len(self.names)
+        self.prev_setpoint = np.full((D, 3), np.nan)
+        self.hold_at = np.full((D, 3), np.nan)
         self._last_pose: tuple[float, np.ndarray] | None = None  # (clock time, positions) for the velocity estimate
         self.episode = -1
-        self.aborted = ""
+        self.episodes_flown = 0
+        self.aborted = ""  # why the flight ended early ("" while it has not)
+        self.error: BaseException | None = None
         self.notes: dict[str, list[str]] = {}  # fault notes for the next logged tick, per drone
+        self.policy = PolicyRunner(team, clock, self.faults)
+        self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="transit")
 
     # ------------------------------------------------------------------ poses
     def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -211,71 +305,141 @@ class Flight:
 
     # ------------------------------------------------------------- the flight
     def run(self) -> None:
-        """Take off, fly ``cfg.episodes`` episodes (or until the shield ends the flight), land."""
+        """Take off, fly ``cfg.episodes`` episodes (until the shield or an error ends the flight), land.
+
+        Never raises for what happens in flight: an exception is kept in :attr:`error`, its
+        one-line reason in :attr:`aborted`, and every drone lands first.
+        """
         try:
+            self.bridge.start_heartbeat(lambda: self.stop.urgent)
             self._takeoff()
             for episode in range(self.cfg.episodes):
                 if self.aborted:
                     break
                 self.episode = episode
                 self._fly_episode()
+                if not self.aborted or self.episode_done:
+                    self.episodes_flown += 1
+                self.on_episode()
+        except BaseException as exc:
+            self.error = exc
+            self.aborted = self.aborted or f"{type(exc).__name__}: {exc}"
         finally:
-            self._land_all()
+            try:
+                self._land_all()
+            except Exception as exc:  # the loop itself is broken: land through the bridge alone
+                airborne = [n for n in self.names if self.state[n] in AIRBORNE]
+                self.bridge.land(airborne, 2.0)
+                self.bridge.notify_stop(airborne)
+                self.clock.sleep(2.5)
+                self.aborted = self.aborted or f"{type(exc).__name__}: {exc}"
             pos, yaw, age = self.measured()  # the last row: where every drone ended, in its final state
-            self._log_tick(self.clock.now(), -1, pos, yaw, self._shield(pos, age, pos, 0.0), {}, None)
+            self._log_tick(self.clock.now(), -1, pos, yaw, self._shield(pos, age, pos), {}, None)
+            self.bridge.stop_heartbeat()
+            self.policy.close()
+            self._worker.shutdown(wait=False, cancel_futures=True)
+        if self.stop and not self.aborted:
+            self.aborted = f"stop requested ({self.stop.signal})"
 
-    def _physical(self) -> np.ndarray:
-        return np.ones(len(self.names), dtype=bool)
+    episode_done = False  # the current episode reached its own outcome (set per episode)
+
+    def _airborne(self) -> np.ndarray:
+        return np.array([self.state[n] in AIRBORNE for n in self.names])
 
     def _takeoff(self) -> None:
         self.bridge.arm(self.names)
         self.bridge.takeoff(self.names, self.cfg.flight_height, self.cfg.takeoff_duration)
         self._set_state(self.names, "taking_off")
-        self._transit(self.cfg.takeoff_duration + 0.5)
+        self._watch(self.cfg.takeoff_duration + 0.5)
         self._set_state([n for n in self.names if self.state[n] == "taking_off"], "flying")
+        self.prev_setpoint[:] = np.nan  # the first transit tick takes over from the planner, through the shield
 
     def _spawn(self) -> tuple[np.ndarray, np.ndarray]:
-        pos, _ = spawn(self.task, self.rng, 1)
-        return pos[0, : len(self.pursuers)], pos[0, len(self.pursuers) :]
+        P = len(self.pursuers)
+        physical_e = bool(self.evader_drones)
+
+        def draw() -> tuple[np.ndarray, np.ndarray]:
+            pos, _ = spawn(self.task, self.rng, 1)
+            return pos[0, :P], pos[0, P:]
+
+        def draw_physical() -> tuple[np.ndarray, np.ndarray]:
+            pos_p, pos_e = draw()
+            self._drawn = (pos_p, pos_e)
+            return pos_p, pos_e if physical_e else np.zeros((0, 2))
+
+        separated_spawn(draw_physical, self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height)
+        return self._drawn
 
     def _go_to_spawn(self, spawn_p: np.ndarray, spawn_e: np.ndarray) -> None:
-        """Fly every drone to its spawn position in three high-level legs on separate altitude layers.
-
-        Drone i climbs (or descends) to its own layer ``flight_height + i * transit_layer``,
-        flies there to above its spawn position, then descends to the flight height: the
-        straight legs of two drones never meet, because no two drones share a layer while
-        they move across the arena (the shield does not steer the high-level commander).
-        """
-        targets = {n: spawn_p[i] for i, n in enumerate(self.pursuers)}
-        targets.update({n: spawn_e[j] for j, n in enumerate(self.evader_drones)})
-        flying = [n for n in self.names if self.state[n] == "flying"]
-        self.bridge.notify_stop(flying)
+        """Take off landed drones, then fly every drone to its spawn position on a planned transit."""
+        landed = [n for n in self.names if self.state[n] == "landed"]
+        if landed:
+            self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
+            self._set_state(landed, "taking_off")
+            self._watch(self.cfg.takeoff_duration + 0.5)
+            self._set_state([n for n in landed if self.state[n] == "taking_off"], "flying")
+        if self.aborted:
+            return
+        targets = np.concatenate([spawn_p, spawn_e if self.evader_drones else np.zeros((0, 2))])
+        flying = self._airborne()
         pos, _, _ = self.measured()
-        h, gap = self.cfg.flight_height, self.cfg.transit_layer
-        layer = {n: h + gap * i for i, n in enumerate(self.names)}
-        here = {n: pos[i, :2] if np.isfinite(pos[i, :2]).all() else targets[n] for i, n in enumerate(self.names)}
-        climb = max(1.0, gap * (len(self.names) - 1) / 0.3)
-        dist = max((float(np.hypot(*(here[n] - targets[n]))) for n in flying), default=0.0)
-        legs = (
-            ({n: (*here[n], layer[n]) for n in flying}, climb),
-            ({n: (*targets[n], layer[n]) for n in flying}, max(1.0, dist / self.cfg.goto_speed)),
-            ({n: (*targets[n], h) for n in flying}, climb),
+        start = np.where(np.isfinite(pos), pos, np.r_[0.0, 0.0, self.cfg.flight_height])
+        start[:, 2] = self.cfg.flight_height
+        end = np.c_[targets, np.full(len(targets), self.cfg.flight_height)]
+        # the task's spawn regions reach into the fence margin: a target the shield would clip is never reached
+        lo, hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+        end[:, :2], _ = push_out_of_obstacles(
+            np.clip(end[:, :2], lo, hi), self.obstacles, self.shield_cfg.obstacle_clearance
         )
-        for goals, duration in legs:
-            for n, goal in goals.items():
-                self.bridge.go_to(n, np.array(goal), math.pi / 2, duration)
-            self._transit(duration + 0.3)
-            if self.aborted:
+        end[:, :2] = np.clip(end[:, :2], lo, hi)
+        end[~flying] = start[~flying]
+        lo_hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+        planning = self._worker.submit(
+            plan_transit,
+            start,
+            end,
+            self.cfg.goto_speed,
+            self.shield_cfg.drone_radius,
+            self.shield_cfg.drone_half_height,
+            bounds=lo_hi,
+            obstacles=self.obstacles,
+            clearance=self.shield_cfg.obstacle_clearance,
+        )
+        while not planning.done():  # the loop keeps ticking (and the heartbeat fed) while the plan is made
+            if not self._hold_tick():
                 return
+        try:
+            plan = planning.result()
+        except TransitBlocked as exc:
+            self.aborted = f"transit blocked: {exc}"
+            return
+        began = self.clock.now()
+        deadline = began + plan.total + 5.0
+        while self.clock.now() < deadline and not self.aborted:
+            tick = self._begin_tick()
+            ref, vel = plan.at(tick - began)
+            pos, yaw, age = self.measured()
+            decision = self._shield(pos, age, ref, vel)
+            self._apply(decision)
+            self._touchdown(pos)
+            self._log_tick(tick, -1, pos, yaw, decision, {}, None)
+            done = np.hypot(*(pos[:, :2] - end[:, :2]).T) < ARRIVED
+            if tick - began >= plan.total and done[flying].all():
+                return
+        if not self.aborted:
+            self.aborted = "transit did not arrive in time"
 
     def _fly_episode(self) -> None:
+        self.episode_done = False
         spawn_p, spawn_e = self._spawn()
         self._go_to_spawn(spawn_p, spawn_e)
         if self.aborted:
             return
         P, E = len(self.pursuers), self.task.players.num_e
         heading = np.full(P, np.pi / 2)
-        virtual_e = spawn_e.copy()
+        pos0, _, _ = self.measured()
+        ref = np.where(np.isfinite(pos0[:, :2]), pos0[:, :2], np.concatenate([spawn_p, spawn_e])[: len(self.names)])
+        ref_e = spawn_e.copy()  # the evaders' references (virtual evaders: their positions)
         head_e = np.full(E, np.pi / 2)
         lo, hi = self.escape.wander_steps
         wander_heading, wander_left = head_e.copy(), self.rng.integers(lo, hi + 1, size=E)
@@ -284,24 +448,26 @@ class Flight:
         self.team.new_episode(self.rng)
         prev_dist: np.ndarray | None = None
         while not outcome:
-            tick = self.ticks.wait()
+            tick = self._begin_tick()
             lat: dict[str, float] = {}
             c0 = time.perf_counter()
-            self._faults(tick)
             pos, yaw, age = self.measured()
             lat["mocap_age"] = (
                 float(np.nanmax(np.where(np.isfinite(age), age, np.nan))) if np.isfinite(age).any() else math.inf
             )
             c1 = time.perf_counter()
-            pos_p = _fill(pos[:P, :2], self.prev_setpoint[:P, :2])
-            pos_e = virtual_e if not self.evader_drones else _fill(pos[P:, :2], self.prev_setpoint[P:, :2])
+            pos_p = _fill(pos[:P, :2], ref[:P])
+            pos_e = ref_e if not self.evader_drones else _fill(pos[P:, :2], ref[P:])
             # the episode so far: capture and collision at the measured poses
             judged = judge(np.concatenate([pos_p, pos_e])[None], captured[None], self.task, self.geometry)
             dist = judged.evader_distance[0]
             if prev_dist is not None:
                 ret += self._reward(prev_dist, dist, captured, judged)
             prev_dist = np.where(judged.captured[0], 0.0, dist)
+            newly = judged.captured[0] & ~captured
             captured = judged.captured[0]
+            if self.evader_drones and newly.any():
+                self._land([self.evader_drones[j] for j in np.flatnonzero(newly)])
             if captured.all():
                 outcome = OUTCOMES[CAPTURED]
             elif judged.collided[0].any() and self.task.task.collision_ends_episode:
@@ -310,31 +476,39 @@ class Flight:
                 outcome = OUTCOMES[TIMEOUT]
             obs, poses = self.observations(pos_p, heading, pos_e, captured)
             c2 = time.perf_counter()
-            stall = self.faults.stall
-            if stall:
-                self.faults.stall = 0.0
-                self.clock.sleep(stall)
-            actions = self.team.act(obs, poses, self.learner_slots, self.partner_slots)
+            actions = self.policy.act(self.shield_cfg.policy_late, obs, poses, self.learner_slots, self.partner_slots)
             c3 = time.perf_counter()
-            policy_latency = (c3 - c2) * self.clock.rate
-            heading, setpoint_p, _ = command(pos_p, heading, actions, self.arena, self.cfg.flight_height)
-            move = self._evaders(pos_e, head_e, pos_p, captured, wander_heading, wander_left)
-            head_e, wander_heading, wander_left = move.heading, move.wander_heading, move.wander_left
-            if not self.evader_drones:
-                virtual_e = move.pos
-            setpoints = setpoint_p
-            yaws = np.degrees(heading)
-            if self.evader_drones:
-                setpoints = np.concatenate([setpoint_p, np.c_[move.pos, np.full(E, self.cfg.flight_height)]])
-                yaws = np.concatenate([yaws, np.degrees(move.heading)])
-            decision = self._shield(pos, age, setpoints, policy_latency)
+            vel = np.zeros((len(self.names), 3))
+            setpoints = np.c_[ref, np.full(len(self.names), self.cfg.flight_height)]
+            if actions is not None:
+                heading, ref_p, mid_p, vel_p = advance_reference(ref[:P], pos_p, heading, actions, self.arena, self.dt)
+                move = self._evaders(ref_e, head_e, pos_p, captured, wander_heading, wander_left)
+                head_e, wander_heading, wander_left = move.heading, move.wander_heading, move.wander_left
+                mid_e, vel_e = (ref_e + move.pos) / 2, (move.pos - ref_e) / self.dt
+                ref_e = move.pos
+                ref[:P] = ref_p
+                setpoints[:P, :2], vel[:P, :2] = mid_p, vel_p
+                if self.evader_drones:
+                    ref[P:] = ref_e
+                    setpoints[P:, :2], vel[P:, :2] = mid_e, vel_e
+                    vel[P:][captured] = 0.0
+            decision = self._shield(pos, age, setpoints, vel, self.policy.late_for())
+            if actions is None and not (decision.action >= Action.LAND).any():
+                fence = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+                decision = _hold_all(decision, self.hold_at, pos, self._airborne() & np.isfinite(pos).all(1), fence)
+                self.notes.setdefault("", []).append("policy_late")
             c4 = time.perf_counter()
-            if not outcome:
-                outcome = self._apply(decision, yaws)
+            if not outcome and self._apply(decision):
+                outcome = "shield"
+            # a held drone's reference restarts where it is held
+            held = decision.action == Action.HOLD
+            ref[held] = decision.setpoint[held, :2]
+            self._touchdown(pos)
             c5 = time.perf_counter()
             lat.update(observe=c2 - c1, policy=c3 - c2, shield=c4 - c3, send=c5 - c4, tick=c5 - c0)
-            self._log_tick(tick, steps, pos, yaw, decision, lat, virtual_e if not self.evader_drones else None)
+            self._log_tick(tick, steps, pos, yaw, decision, lat, ref_e if not self.evader_drones else None)
             steps += 1
+        self.episode_done = outcome != "shield"
         self.log.episode(
             self.episode,
             outcome,
@@ -378,23 +552,54 @@ class Flight:
         )
         return EvaderMove(move.pos[0], move.heading[0], move.wander_heading[0], move.wander_left[0])
 
+    # ----------------------------------------------------------------- ticks
+    def _begin_tick(self) -> float:
+        """Wait for the next tick, beat the heartbeat, fire due faults; the tick's clock time."""
+        tick = self.ticks.wait()
+        self.bridge.beat()
+        for drone, note in self.faults.fire(tick - self.t0):
+            for n in [drone] if drone else self.names:
+                self.notes.setdefault(n, []).append(note)
+        if self.faults.hang:
+            hang, self.faults.hang = self.faults.hang, 0.0
+            self.clock.sleep(hang)  # the loop hangs: no beat, no setpoint (the dead-man heartbeat stops)
+        if self.faults.raise_now:
+            self.faults.raise_now = False
+            raise InjectedFault("an exception injected into the loop (fault 'exception')")
+        return tick
+
     # ----------------------------------------------------------------- safety
-    def _shield(self, pos: np.ndarray, age: np.ndarray, setpoints: np.ndarray, policy_latency: float) -> ShieldDecision:
+    def _shield(
+        self,
+        pos: np.ndarray,
+        age: np.ndarray,
+        setpoints: np.ndarray,
+        vel: np.ndarray | None = None,
+        policy_late: float = 0.0,
+    ) -> ShieldDecision:
         battery, link = self.bridge.battery(), self.bridge.link_age()
+        bits = self.bridge.supervisor()
+        sender = self.bridge.sender_age()
+        airborne = self._airborne()
         inp = ShieldInput(
             dt=self.dt,
             arena=(self.geometry.width, self.geometry.height),
             names=tuple(self.names),
-            physical=self._physical(),
+            physical=airborne,
             pos=pos,
             vel=self._velocity(pos),
             pose_age=age,
             setpoint=setpoints,
             prev_setpoint=self.prev_setpoint,
-            battery=np.array([battery.get(n, np.nan) for n in self.names]),
-            link_age=np.array([link.get(n, np.inf) * self.clock.rate for n in self.names]),
-            policy_latency=policy_latency,
+            battery=np.array([battery.get(n, np.nan) if airborne[i] else np.inf for i, n in enumerate(self.names)]),
+            # a sender stuck in a blocked radio is as good as a lost link: nothing reaches the drones
+            link_age=np.array([max(link.get(n, np.inf) * self.clock.rate, sender) for n in self.names]),
+            policy_latency=policy_late,
             stop_requested=bool(self.stop),
+            setpoint_vel=vel,
+            hold_at=self.hold_at,
+            locked=np.array([bool(bits.get(n, 0) >> 6 & 1) and self.state[n] != "stopped" for n in self.names]),
+            obstacles=self.obstacles,
         )
         return shield(inp, self.shield_cfg)
 
@@ -406,22 +611,26 @@ class Flight:
             return np.full_like(pos, np.nan)
         return (pos - last[1]) / (now - last[0])
 
-    def _apply(self, decision: ShieldDecision, yaws: np.ndarray) -> str:
-        """Send what the shield allows; return "shield" when it ends the episode (and the flight)."""
+    def _apply(self, decision: ShieldDecision) -> bool:
+        """Post what the shield allows; True when it ends the episode (and the flight)."""
         act = decision.action
+        vel = decision.velocity if decision.velocity is not None else np.zeros_like(decision.setpoint)
         stream = {
-            n: (*decision.setpoint[i], float(yaws[i]))
+            n: (decision.setpoint[i], vel[i], np.zeros(3))
             for i, n in enumerate(self.names)
             if act[i] in (Action.TRACK, Action.HOLD) and self.state[n] == "flying"
         }
-        self.bridge.send_position(stream)
+        self.bridge.post_setpoints(stream)
         for n, sp in stream.items():
-            self.prev_setpoint[self.names.index(n)] = sp[:3]
+            self.prev_setpoint[self.names.index(n)] = sp[0]
+        if decision.hold_at is not None:
+            self.hold_at = decision.hold_at.copy()
         if (act >= Action.LAND).any():
-            self.aborted = ",".join(sorted({e.rule for e in decision.events if e.rule != "speed"})) or "shield"
+            rules = sorted({e.rule for e in decision.events if e.rule not in ("speed", "separation", "step")})
+            self.aborted = self.aborted or "shield: " + (",".join(rules) or "land")
             self._escalate(decision)
-            return "shield"
-        return ""
+            return True
+        return False
 
     def _escalate(self, decision: ShieldDecision) -> None:
         """Drones the shield stops get an emergency stop; lost links are left alone; every other drone lands."""
@@ -433,49 +642,77 @@ class Flight:
         for n in lost:
             self._set_state([n], "lost")
 
-    def _land_all(self) -> None:
-        """Land every drone still in the air (high-level commander), watching the shield until they are down."""
-        airborne = [n for n in self.names if self.state[n] in ("taking_off", "flying")]
-        if airborne:
+    def _land(self, names: Sequence[str]) -> None:
+        """Hand the drones to the high-level commander to land: the land command first, then notify."""
+        names = [n for n in names if self.state[n] in ("taking_off", "flying")]
+        if names:
             duration = max(1.0, self.cfg.flight_height / 0.5)
-            self.bridge.notify_stop(airborne)
-            self.bridge.land(airborne, duration)
-            self._set_state(airborne, "landing")
-            self._transit(duration + 0.5, landing=True)
-            self._set_state([n for n in airborne if self.state[n] == "landing"], "landed")
+            self.bridge.land(names, duration)
+            self.bridge.notify_stop(names)
+            self._set_state(names, "landing")
 
-    def _transit(self, seconds: float, landing: bool = False) -> None:
-        """Let the high-level commander fly for ``seconds``, logging each tick and watching the shield.
+    def _hold_tick(self) -> bool:
+        """One tick holding every streaming drone where it is (latched, zero velocity, through the shield);
+        False when the shield ended the flight."""
+        tick = self._begin_tick()
+        pos, yaw, age = self.measured()
+        here = np.where(np.isfinite(self.hold_at).all(1)[:, None], self.hold_at, pos)
+        decision = self._shield(pos, age, here, np.zeros_like(pos))  # clamped into the fence, zero velocity
+        decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
+        ended = self._apply(decision)
+        track = decision.action == Action.TRACK
+        self.hold_at[track] = decision.setpoint[track]  # latched: the next hold tick sends the same point
+        self._touchdown(pos)
+        self._log_tick(tick, -1, pos, yaw, decision, {}, None)
+        return not ended
 
-        The shield's rules on poses, links, batteries and signals still apply while the
-        high-level commander flies (we stream no setpoints then): a LAND during takeoff or
-        transit ends the flight (everything lands), a STOP stops; a landing ends early
-        once every drone still flying is down.
+    def _brake(self, seconds: float = 0.6) -> None:
+        """Hold every streaming drone for ``seconds``: a drone handed to the planner at speed would swing back
+        to where the land command found it."""
+        end = self.clock.now() + seconds
+        while self.clock.now() < end and any(self.state[n] == "flying" for n in self.names):
+            if not self._hold_tick():
+                return
+
+    def _land_all(self) -> None:
+        """Brake, then land every drone still in the air, watching the shield (and feeding the heartbeat) until
+        they are down."""
+        self._brake()
+        self._land([n for n in self.names if self.state[n] in AIRBORNE])
+        if any(self.state[n] == "landing" for n in self.names):
+            self._watch(max(1.0, self.cfg.flight_height / 0.5) + 1.0, landing=True)
+
+    def _watch(self, seconds: float, landing: bool = False) -> None:
+        """Let the high-level commander fly ``seconds`` (takeoff, landing), logging ticks and watching the shield.
+
+        The shield's rules on poses, links, batteries and signals still apply: during a
+        takeoff a LAND ends the flight (everything lands), a STOP stops; drones that
+        touch down become ``landed``; a landing ends early once every landing drone is down.
         """
-        self.prev_setpoint[:] = np.nan
         end = self.clock.now() + seconds
         while self.clock.now() < end:
-            tick = self.ticks.wait()
-            self._faults(tick)
+            tick = self._begin_tick()
             pos, yaw, age = self.measured()
-            decision = self._shield(pos, age, pos, 0.0)  # no setpoints of ours: the high-level commander flies
+            decision = self._shield(pos, age, pos)  # no setpoints of ours: the high-level commander flies
+            decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
             self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             if decision.lost() or (decision.action == Action.STOP).any():
                 self._escalate(decision)
+            self._touchdown(pos)
             if not landing and (decision.action >= Action.LAND).any():
-                self.aborted = self.aborted or ",".join(sorted({e.rule for e in decision.events})) or "shield"
+                rules = sorted({e.rule for e in decision.events if e.rule not in ("speed", "separation", "step")})
+                self.aborted = self.aborted or "shield: " + (",".join(rules) or "land")
                 self._escalate(decision)
                 return
-            down = np.nan_to_num(pos[:, 2], nan=0.0) < 0.05
-            if landing and all(down[i] for i, n in enumerate(self.names) if self.state[n] == "landing"):
+            if landing and not any(self.state[n] == "landing" for n in self.names):
                 return
 
-    # ---------------------------------------------------------------- logging
-    def _faults(self, tick: float) -> None:
-        for drone, note in self.faults.fire(tick - self.t0):
-            for n in [drone] if drone else self.names:
-                self.notes.setdefault(n, []).append(note)
+    def _touchdown(self, pos: np.ndarray) -> None:
+        """Landing drones measured on the ground are ``landed``."""
+        down = np.nan_to_num(pos[:, 2], nan=0.0) < 0.05
+        self._set_state([n for i, n in enumerate(self.names) if self.state[n] == "landing" and down[i]], "landed")
 
+    # ---------------------------------------------------------------- logging
     def _set_state(self, names: Sequence[str], state: str) -> None:
         for n in names:
             if self.state[n] not in ("stopped", "lost") or state in ("stopped", "lost"):
@@ -492,6 +729,7 @@ class Flight:
         virtual_e: np.ndarray | None,
     ) -> None:
         events, self.notes = self.notes, {}
+        everyone = events.pop("", [])
         for e in decision.events:
             events.setdefault(e.drone, []).append(e.rule)
         for i, n in enumerate(self.names):
@@ -505,7 +743,7 @@ class Flight:
                 yaw=float(yaw[i]),
                 setpoint=self.prev_setpoint[i],
                 state=self.state[n],
-                events=events.get(n, []),
+                events=everyone + events.get(n, []),
                 battery=float(self.bridge.battery().get(n, np.nan)),
                 latency=latency,
             )
@@ -525,6 +763,29 @@ class Flight:
                     battery=float("nan"),
                     latency={},
                 )
+
+
+def _hold_all(
+    decision: ShieldDecision,
+    prev_hold: np.ndarray,
+    pos: np.ndarray,
+    airborne: np.ndarray,
+    fence: tuple[np.ndarray, np.ndarray],
+) -> ShieldDecision:
+    """A late policy: every airborne drone the shield let track is held too, at its latched hold point (where
+    it was held last tick, else where it is), zero velocity."""
+    action = decision.action.copy()
+    newly = airborne & (action == Action.TRACK)
+    action[newly] = Action.HOLD
+    latch = np.where(np.isfinite(prev_hold).all(1)[:, None], prev_hold, pos)
+    latch[:, :2] = np.clip(latch[:, :2], *fence)
+    setpoint = decision.setpoint.copy()
+    setpoint[newly] = latch[newly]
+    velocity = np.zeros_like(setpoint) if decision.velocity is None else decision.velocity.copy()
+    velocity[newly] = 0.0
+    hold_at = np.full_like(setpoint, np.nan) if decision.hold_at is None else decision.hold_at.copy()
+    hold_at[newly] = latch[newly]
+    return ShieldDecision(action, setpoint, decision.events, decision.names, velocity, hold_at)
 
 
 def _fill(measured: np.ndarray, fallback: np.ndarray) -> np.ndarray:

@@ -155,6 +155,16 @@ class FrameTransform:
         yaw = np.arctan2(heading[:, 1], heading[:, 0]) + math.radians(self.yaw_offset_deg)
         return arena, wrap_angle(yaw)
 
+    def quat_to_arena(self, quat_wxyz: np.ndarray) -> np.ndarray:
+        """Mocap orientations (D, 4) -> orientations (D, 4) (w, x, y, z) in the arena frame, the yaw offset
+        included (their yaw is :meth:`to_arena`'s): what ``send_extpose`` tells the drone's estimator."""
+        q = np.asarray(quat_wxyz, dtype=np.float64).reshape(-1, 4)
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        conj = self._q_arena * np.array([1.0, -1.0, -1.0, -1.0])  # type: ignore[attr-defined]
+        half = math.radians(self.yaw_offset_deg) / 2
+        q_off = np.array([math.cos(half), 0.0, 0.0, math.sin(half)])
+        return _quat_mul(q_off, _quat_mul(conj, q))
+
     def to_mocap(self, pos: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The inverse of :meth:`to_arena` for level bodies: arena (D, 3), yaws (D,) -> mocap (D, 3), (D, 4)."""
         pos = np.asarray(pos, dtype=np.float64).reshape(-1, 3)
@@ -171,6 +181,7 @@ class Pose:
     t: float
     pos: np.ndarray  # (3,)
     yaw: float  # radians, counter-clockwise from the arena's +x
+    quat: np.ndarray | None = None  # (w, x, y, z) in the arena frame
 
 
 FrameCallback = Callable[[dict[str, Pose]], None]
@@ -218,8 +229,9 @@ class _Poses:
         t = self.clock.now()
         seen = np.isfinite(pos).all(1) & np.isfinite(quat).all(1)
         arena, yaw = self.transform.to_arena(pos[seen], quat[seen])
+        q_arena = self.transform.quat_to_arena(quat[seen])
         kept = [n for n, s in zip(names, seen, strict=True) if s]
-        poses = {n: Pose(t, arena[i], float(yaw[i])) for i, n in enumerate(kept)}
+        poses = {n: Pose(t, arena[i], float(yaw[i]), q_arena[i]) for i, n in enumerate(kept)}
         with self._lock:
             self._latest.update(poses)
             self.frames += 1

@@ -9,12 +9,15 @@
 - observation: the observations the loop computes from the live poses equal those of
   a :class:`~atdrone.envs.core.BatchedPursuit` placed at the same poses (with the
   measured yaws): the slot order, the frame and the headings all agree;
-- command path: a short hover-and-turn on a private simulated fleet through the same
-  command function, bridge and motion-capture code; the drone must end where the
-  simulator's turn rule puts it.
+- estimate: each drone's onboard state estimate (logged ``stateEstimate`` x, y, z, yaw)
+  agrees with motion capture within 0.1 m and 10 degrees: an estimator whose yaw was
+  left at 0 (position-only extpos, never reset) fails here, before it can flip a drone;
+- frame: the reference marker (``frame_reference``, fixed at a known arena pose) is seen
+  there within 0.1 m and 10 degrees: an origin error of 0.3 m, a swapped axis or a yaw
+  offset of 90 degrees fails here (the drones alone cannot show it: they fly consistently
+  in whatever frame they are given).
 
-A frame transform that is off (an axis swapped, yaw off by 90 degrees) fails the
-spawn, heading and observation checks, and nothing arms.
+Nothing arms unless every check passes.
 """
 
 from __future__ import annotations
@@ -26,14 +29,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from atdrone.config import TaskConfig, spawn_boxes
-from atdrone.deploy.clock import ScaledClock
 from atdrone.envs.core import BatchedPursuit
-from atdrone.envs.kinematics import advance, turn, wrap_angle
-from atdrone.envs.observation import Arena
+from atdrone.envs.kinematics import wrap_angle
 
 HEADING_TOLERANCE_DEG = 20.0
 OBS_TOLERANCE = 0.35  # about 20 degrees of bearing (2 sin 10 deg) or 1.7 m / 5 of distance
-COMMAND_TOLERANCE = 0.1  # metres between the flown and the simulated hover-and-turn
+ESTIMATE_POS_TOLERANCE = 0.1  # m between the onboard estimate (or the reference marker) and motion capture
+ESTIMATE_YAW_TOLERANCE_DEG = 10.0
 
 
 @dataclass(frozen=True)
@@ -118,68 +120,57 @@ def check_observation(
     ]
 
 
-def hover_and_turn(
-    task: TaskConfig,
-    height: float,
-    command: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]],
-    actions: tuple[float, ...] = (1.0, 1.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-    rate: float = 4.0,
+def check_estimates(
+    names: list[str],
+    pos: np.ndarray,
+    yaw: np.ndarray,
+    estimates: dict[str, tuple[float, float, float, float]],
+    pos_tolerance: float = ESTIMATE_POS_TOLERANCE,
+    yaw_tolerance_deg: float = ESTIMATE_YAW_TOLERANCE_DEG,
 ) -> list[str]:
-    """Fly ``actions`` with one simulated drone through the real command path; compare with the turn rule.
-
-    The drone takes off at the arena's centre facing +y, then each tick: measured pose ->
-    ``command`` -> cflib position setpoint -> simulated Crazyflie -> simulated mocap. The
-    simulator predicts the path from the same start by :func:`turn` and :func:`advance`.
-    """
-    from atdrone.deploy.bridge import CflibBridge
-    from atdrone.deploy.mocap import FrameTransform, SimMocap
-    from atdrone.deploy.simfleet import SimFleet
-
-    arena = Arena.from_config(task)
-    clock = ScaledClock(rate)
-    start = np.array([[arena.geometry.width / 2, arena.geometry.height / 2 - 0.6, 0.0]])
-    with SimFleet(["check"], start, clock) as fleet:
-        mocap = SimMocap(fleet.truth, FrameTransform(), clock, noise=0.0, latency=0.0)
-        bridge = CflibBridge(fleet.uris)
-        mocap.start()
-        try:
-            bridge.open()
-            mocap.on_frame(lambda poses: bridge.send_extpos({n: tuple(p.pos) for n, p in poses.items()}))
-            bridge.arm(["check"])
-            bridge.takeoff(["check"], height, 1.0)
-            clock.sleep(1.5)
-            pose = mocap.latest()["check"]
-            pos, heading = pose.pos[None, :2].copy(), np.array([np.pi / 2])
-            predicted = pos.copy()
-            t = clock.now()
-            for a in actions:
-                t += task.dt
-                clock.sleep_until(t)
-                pos = mocap.latest()["check"].pos[None, :2]
-                heading, setpoint, yaw_deg = command(pos, heading, np.array([a]), arena, height)
-                bridge.send_position({"check": (*setpoint[0], float(yaw_deg[0]))})
-            head_sim = np.array([np.pi / 2])
-            for a in actions:
-                head_sim = turn(head_sim, np.array([a]))
-                predicted = advance(predicted, head_sim, arena.step, arena.geometry.width, arena.geometry.height)
-            for _ in range(3):  # hold the last setpoint while the drone catches up (tau)
-                t += task.dt
-                clock.sleep_until(t)
-                bridge.send_position({"check": (*setpoint[0], float(yaw_deg[0]))})
-            final = mocap.latest()["check"]
-            bridge.notify_stop(["check"])
-            bridge.land(["check"], 1.0)
-            clock.sleep(1.2)
-        finally:
-            mocap.stop()
-            bridge.close()
+    """Problems with drones whose onboard state estimate (x, y, z, yaw radians) disagrees with motion capture
+    (pos (D, 3), yaw (D,) in the arena frame): an estimator left at yaw 0, one not reset, one fed another frame."""
     problems = []
-    err = float(np.hypot(*(final.pos[:2] - predicted[0])))
-    if err > COMMAND_TOLERANCE:
+    for name, p, y in zip(names, pos, yaw, strict=True):
+        est = np.asarray(estimates.get(name, (math.nan,) * 4), dtype=np.float64)
+        if not np.isfinite(est).all():
+            problems.append(f"{name}: no onboard state estimate logged")
+            continue
+        if not np.isfinite(p).all():
+            continue  # reported by the tracking check
+        err = float(np.linalg.norm(est[:3] - p))
+        yaw_err = abs(math.degrees(float(wrap_angle(np.array(est[3] - y)))))
+        if err > pos_tolerance:
+            problems.append(f"{name}: onboard estimate {err:.2f} m from motion capture (tolerance {pos_tolerance} m)")
+        if yaw_err > yaw_tolerance_deg:
+            problems.append(
+                f"{name}: onboard yaw {math.degrees(est[3]):.0f} deg, motion capture {math.degrees(y):.0f} deg "
+                f"(off by {yaw_err:.0f}, tolerance {yaw_tolerance_deg:g})"
+            )
+    return problems
+
+
+def check_reference(
+    body: str,
+    seen: tuple[np.ndarray, float] | None,
+    pos: tuple[float, float, float],
+    yaw_deg: float,
+    pos_tolerance: float = ESTIMATE_POS_TOLERANCE,
+    yaw_tolerance_deg: float = ESTIMATE_YAW_TOLERANCE_DEG,
+) -> list[str]:
+    """Problems with the frame: the reference marker, seen through ``frame`` at ``seen`` (arena position, yaw
+    radians; None: not tracked), is not at its stated pose (an origin, axis or yaw-offset error)."""
+    if seen is None:
+        return [f"reference body {body!r} not tracked: the frame cannot be checked"]
+    at, yaw = seen
+    err = float(np.linalg.norm(np.asarray(at) - np.asarray(pos)))
+    yaw_err = abs(math.degrees(float(wrap_angle(np.array(yaw - math.radians(yaw_deg))))))
+    problems = []
+    if err > pos_tolerance:
         problems.append(
-            f"hover-and-turn ended {err:.2f} m from the simulator's turn rule (tolerance {COMMAND_TOLERANCE})"
+            f"reference body {body!r} at ({at[0]:.2f}, {at[1]:.2f}, {at[2]:.2f}), stated "
+            f"({pos[0]:.2f}, {pos[1]:.2f}, {pos[2]:.2f}): the frame is off by {err:.2f} m"
         )
-    yaw_err = abs(math.degrees(float(wrap_angle(np.array(final.yaw - head_sim[0])))))
-    if yaw_err > HEADING_TOLERANCE_DEG:
-        problems.append(f"hover-and-turn yaw off the turn rule's heading by {yaw_err:.0f} deg")
+    if yaw_err > yaw_tolerance_deg:
+        problems.append(f"reference body {body!r} yaw off its stated {yaw_deg:g} deg by {yaw_err:.0f} deg")
     return problems

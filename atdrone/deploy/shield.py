@@ -4,34 +4,45 @@ Per drone the shield decides an :class:`Action`, the most severe rule that fires
 
     TRACK < HOLD < LAND < STOP < LOST
 
-- TRACK: send the (clamped) setpoint. HOLD: send a setpoint at the measured position
-  (the previous setpoint when the pose is unknown). LAND: the loop lands the drone with
-  the high-level commander. STOP: emergency stop (motors off). LOST: the link is gone;
-  nothing can be sent (the firmware's watchdog takes over), the loop reports it.
+- TRACK: send the (clamped) full-state setpoint. HOLD: send a setpoint at the drone's
+  hold point, zero velocity: the point is latched at the measured position of the first
+  held tick (``hold_at`` carries it from tick to tick) and, for a separation conflict,
+  pushed apart from the other drone. LAND: the loop lands the drone. STOP: emergency
+  stop (motors off). LOST: the link is gone; nothing can be sent (the firmware's
+  watchdogs take over), the loop reports it.
 
 Rules (``rule`` names as they appear in the flight log):
 
 - ``geofence``: a setpoint outside the fence (the arena shrunk by ``margin``) is pulled
-  inside. ``outside``: a drone measured beyond the fence by more than
-  ``outside_tolerance`` lands.
-- ``step``: a setpoint at most ``max_step`` (horizontal) from the measured position;
-  ``speed``: at most ``max_speed * dt`` from the previous setpoint; ``altitude``: z
-  within ``z_limits``; ``nan_setpoint``: a proposed setpoint with NaN holds.
-- ``separation``: physical drones whose clamped setpoints, or whose positions predicted
-  ``horizon`` seconds ahead, come closer than ``min_separation`` while converging (or
-  that already are that close) hold. Holding sends the measured position, so a held
-  pair's setpoints are where the drones are.
+  inside, and its velocity feed-forward limited so that setpoint + 0.5 s x velocity stays
+  inside (where Mellinger settles when a setpoint stops being renewed). ``outside``: a
+  drone measured beyond the fence by more than ``outside_tolerance`` lands.
+- ``speed``: a setpoint at most ``max_speed * dt`` from the previous setpoint; then
+  ``step``: at most ``max_step`` (horizontal) from the measured position (applied last,
+  so it always holds); ``altitude``: z within ``z_limits``; ``nan_setpoint``: a
+  proposed setpoint with NaN holds.
+- ``obstacle``: a setpoint closer than ``obstacle_clearance`` to an obstacle of the
+  task (boxes and discs; the walls are the fence's) is pushed out to that clearance.
+- ``separation``: every drone is an ellipsoid of radius ``drone_radius`` and
+  half-height ``drone_half_height`` (Crazyswarm's 0.125 / 0.375 m); two physical drones
+  conflict when their ellipsoids touch now or on their measured straight-line motion
+  within ``lookahead`` seconds (1 s: the tick, the radio and the stopping time), or when
+  their proposed setpoints, or their positions, carried along the velocity feed-forward
+  for ``lookahead`` seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
+  pushed apart to 1.2 ellipsoids.
 - ``stale_pose``: a drone without a fresh pose for ``stale_pose`` seconds, or with NaN
-  in its pose, lands. ``all_stale``: every physical drone stale -> all land;
-  ``mocap_lost``: the freshest pose older than ``stop_after`` -> all STOP.
-- ``policy_stall``: the policy step took longer than ``policy_stall`` -> all land.
+  in its pose, lands. ``all_stale``: every drone stale (a landed drone with a fresh
+  pose shows the system alive) -> all land; ``mocap_lost``: the freshest pose older than
+  ``stop_after`` -> all STOP.
+- ``policy_stall``: the policy has been late for ``policy_stall`` s -> all land.
 - ``link_lost``: no packet from a drone for ``link_timeout`` -> that drone is LOST and
-  every other drone lands.
+  every other drone lands. ``locked``: a drone's supervisor reports it locked (its
+  emergency stop fired) -> it is STOPPED and every other drone lands.
 - ``battery``: below ``min_battery`` -> that drone lands.
 - ``signal``: SIGINT/SIGTERM -> all land.
 
 Virtual drones (``physical`` False, e.g. simulated evaders) are ignored by the fence,
-separation and pose rules. Inputs are never modified.
+separation, obstacle and pose rules. Inputs are never modified.
 """
 
 from __future__ import annotations
@@ -42,6 +53,10 @@ from enum import IntEnum
 import numpy as np
 
 from atdrone.config import _check, _non_negative, _positive
+
+FF_REACH = 0.5  # s: Mellinger's kd_xy / kp_xy (0.2 / 0.4): how far past a stale setpoint its feed-forward carries
+HOLD_MARGIN = 1.1  # a pair holds when its ellipsoids would come this close (scaled): room to brake
+PUSH_MARGIN = 1.2  # a held pair is pushed apart until their scaled distance reaches this
 
 
 class Action(IntEnum):
@@ -65,16 +80,27 @@ class ShieldConfig:
 
     margin: float = field(default=0.25, metadata=_check(_non_negative))  # the fence: the arena shrunk by this
     outside_tolerance: float = field(default=0.15, metadata=_check(_non_negative))  # beyond the fence -> land
-    min_separation: float = field(default=0.15, metadata=_check(_positive))  # between physical drones
-    horizon: float = field(default=0.2, metadata=_check(_non_negative))  # s of look-ahead for separation
+    drone_radius: float = field(default=0.125, metadata=_check(_positive))  # the separation ellipsoid, per drone
+    drone_half_height: float = field(default=0.375, metadata=_check(_positive))
+    lookahead: float = field(default=1.0, metadata=_check(_non_negative))  # s: tick + radio + stopping time
+    obstacle_clearance: float = field(default=0.15, metadata=_check(_non_negative))  # m from an obstacle's edge
     max_speed: float = field(default=0.8, metadata=_check(_positive))  # m/s between consecutive setpoints
     max_step: float = field(default=0.3, metadata=_check(_positive))  # m from the measured position
     z_limits: tuple[float, float] = field(default=(0.2, 1.5), metadata=_check(_limits))
     stale_pose: float = field(default=0.3, metadata=_check(_positive))  # s without a fresh pose -> land
     stop_after: float = field(default=1.0, metadata=_check(_positive))  # s with every pose stale -> STOP
-    policy_stall: float = field(default=0.5, metadata=_check(_positive))  # s a policy step may take
+    policy_late: float = field(default=0.3, metadata=_check(_positive))  # s a policy step may take: then hold
+    policy_stall: float = field(default=1.0, metadata=_check(_positive))  # s of a late policy: then land
     link_timeout: float = field(default=0.5, metadata=_check(_positive))  # s without a packet -> lost
     min_battery: float = field(default=3.4, metadata=_check(_positive))  # V
+
+
+@dataclass(frozen=True)
+class Obstacles:
+    """The task's obstacles: boxes (K, 4) centre x, y and half sizes; discs (M, 3) centre x, y and radius."""
+
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    discs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -92,13 +118,17 @@ class ShieldInput:
     prev_setpoint: np.ndarray  # (D, 3) sent last tick
     battery: np.ndarray  # (D,) V
     link_age: np.ndarray  # (D,) s since the last packet
-    policy_latency: float  # s
+    policy_latency: float  # s the policy has been late (0: on time)
     stop_requested: bool
+    setpoint_vel: np.ndarray | None = None  # (D, 3) proposed velocity feed-forward (None: zeros)
+    hold_at: np.ndarray | None = None  # (D, 3) latched hold points of drones held last tick (NaN: not held)
+    locked: np.ndarray | None = None  # (D,) bool: the supervisor reports the drone locked
+    obstacles: Obstacles = field(default_factory=Obstacles)
 
 
 @dataclass(frozen=True)
 class ShieldEvent:
-    """A rule that fired for a drone ("" for a rule about every drone is never used: each drone gets one)."""
+    """A rule that fired for a drone."""
 
     drone: str
     rule: str
@@ -107,12 +137,15 @@ class ShieldEvent:
 
 @dataclass(frozen=True)
 class ShieldDecision:
-    """Per drone: the action, the setpoint to send (TRACK/HOLD; NaN otherwise) and the events."""
+    """Per drone: the action, the setpoint and velocity to send (TRACK/HOLD; NaN otherwise), the events and
+    the latched hold points to pass to the next tick (NaN where a drone is not held)."""
 
     action: np.ndarray  # (D,) int
     setpoint: np.ndarray  # (D, 3)
     events: tuple[ShieldEvent, ...]
     names: tuple[str, ...] = ()
+    velocity: np.ndarray | None = None  # (D, 3)
+    hold_at: np.ndarray | None = None  # (D, 3)
 
     def lost(self) -> list[str]:
         """The drones whose link is lost."""
@@ -124,14 +157,68 @@ def geofence(arena: tuple[float, float], margin: float) -> tuple[np.ndarray, np.
     return np.array([margin, margin]), np.array([arena[0] - margin, arena[1] - margin])
 
 
-def _pairs_closer(points: np.ndarray, ok: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Index pairs (i < j) of rows with ``ok`` whose horizontal distance is below ``limit``; and those distances."""
-    i, j = np.triu_indices(len(points), 1)
-    keep = ok[i] & ok[j]
-    i, j = i[keep], j[keep]
-    d = np.hypot(points[i, 0] - points[j, 0], points[i, 1] - points[j, 1])
-    close = d < limit
-    return i[close], j[close], d[close]
+def ellipsoid_distance(delta: np.ndarray, radius: float, half_height: float) -> np.ndarray:
+    """Scaled distance (...) between two drones' centres ``delta`` (..., 3) apart: below 1 their ellipsoids
+    (``radius``, ``half_height`` each) touch; the pair's Minkowski sum has twice the semi-axes."""
+    scale = np.array([2 * radius, 2 * radius, 2 * half_height])
+    return np.asarray(np.sqrt(((delta / scale) ** 2).sum(-1)))
+
+
+def closest_approach(
+    rel_pos: np.ndarray, rel_vel: np.ndarray, horizon: float, radius: float, half_height: float
+) -> np.ndarray:
+    """The smallest scaled distance (...) over t in [0, horizon] of a pair moving ``rel_pos + rel_vel t``."""
+    scale = np.array([2 * radius, 2 * radius, 2 * half_height])
+    p, v = rel_pos / scale, rel_vel / scale
+    vv = (v * v).sum(-1)
+    t = np.clip(np.where(vv > 1e-12, -(p * v).sum(-1) / np.maximum(vv, 1e-12), 0.0), 0.0, horizon)
+    closest = p + v * t[..., None]
+    return np.asarray(np.sqrt((closest * closest).sum(-1)))
+
+
+def obstacle_distance(points: np.ndarray, obstacles: Obstacles) -> np.ndarray:
+    """Distance (N,) from each point (N, 2) to the nearest obstacle's edge (negative inside; inf: none)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    best = np.full(len(points), np.inf)
+    for cx, cy, hx, hy in obstacles.boxes:
+        q = np.abs(points - np.array([cx, cy])) - np.array([hx, hy])
+        outside = np.maximum(q, 0.0)
+        best = np.minimum(best, np.hypot(outside[:, 0], outside[:, 1]) + np.minimum(q.max(1), 0.0))
+    for cx, cy, radius in obstacles.discs:
+        best = np.minimum(best, np.hypot(points[:, 0] - cx, points[:, 1] - cy) - radius)
+    return best
+
+
+def push_out_of_obstacles(points: np.ndarray, obstacles: Obstacles, clearance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points (D, 2) moved to ``clearance`` outside every obstacle they are closer to; and which moved (D,)."""
+    out = np.array(points, dtype=np.float64)
+    moved = np.zeros(len(out), dtype=bool)
+    for _ in range(3):  # an obstacle's push may bring a point near another: a few rounds settle it
+        for cx, cy, hx, hy in obstacles.boxes:
+            r = out - np.array([cx, cy])
+            q = np.abs(r) - np.array([hx, hy])
+            outside = np.maximum(q, 0.0)
+            dist = np.hypot(outside[:, 0], outside[:, 1]) + np.minimum(q.max(1), 0.0)
+            near = dist < clearance
+            for k in np.flatnonzero(near):
+                if (q[k] > 0).any():  # outside the box: along the normal of its nearest point
+                    n = np.sign(r[k]) * outside[k]
+                    n = n / np.linalg.norm(n)
+                else:  # inside: out through the nearest side
+                    axis = int(np.argmax(q[k]))
+                    n = np.zeros(2)
+                    n[axis] = np.sign(r[k, axis]) or 1.0
+                out[k] += n * (clearance - dist[k])
+                moved[k] = True
+        for cx, cy, radius in obstacles.discs:
+            r = out - np.array([cx, cy])
+            length = np.hypot(r[:, 0], r[:, 1])
+            near = length - radius < clearance
+            for k in np.flatnonzero(near):
+                n = r[k] / length[k] if length[k] > 1e-9 else np.array([1.0, 0.0])
+                out[k] = np.array([cx, cy]) + n * (radius + clearance)
+                moved[k] = True
+    return out, moved
 
 
 def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
@@ -152,19 +239,24 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     if inp.stop_requested:
         fire(everyone, Action.LAND, "signal", "stop requested (SIGINT/SIGTERM)")
     if inp.policy_latency > cfg.policy_stall:
-        fire(everyone, Action.LAND, "policy_stall", f"policy step took {inp.policy_latency:.2f} s")
+        fire(everyone, Action.LAND, "policy_stall", f"policy late for {inp.policy_latency:.2f} s")
     lost = np.asarray(inp.link_age) > cfg.link_timeout
     if lost.any():
         fire(lost, Action.LOST, "link_lost", f"no packet for more than {cfg.link_timeout} s")
         fire(
             ~lost, Action.LAND, "link_lost", f"link lost: {', '.join(n for n, x in zip(names, lost, strict=True) if x)}"
         )
+    locked = np.zeros(D, dtype=bool) if inp.locked is None else np.asarray(inp.locked, dtype=bool)
+    if locked.any():
+        fire(locked, Action.STOP, "locked", "the supervisor reports the drone locked (emergency stop)")
+        fire(~locked, Action.LAND, "locked", f"locked: {', '.join(n for n, x in zip(names, locked, strict=True) if x)}")
     # --- poses
     known = np.asarray(np.isfinite(pos).all(1))
     age = np.asarray(inp.pose_age, dtype=np.float64)
     stale = phys & (~known | ~(age <= cfg.stale_pose))
-    if phys.any() and stale[phys].all():
-        freshest = float(np.min(np.where(known, age, np.inf)[phys]))
+    tracked = phys | np.isfinite(age)  # a landed drone still tracked shows the system is alive
+    if phys.any() and (~known | ~(age <= cfg.stale_pose))[tracked].all():
+        freshest = float(np.min(np.where(known, age, np.inf)[tracked]))
         if freshest > cfg.stop_after:
             fire(phys, Action.STOP, "mocap_lost", f"no fresh pose of any drone for {freshest:.2f} s")
         else:
@@ -179,16 +271,13 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     battery = np.asarray(inp.battery, dtype=np.float64)
     fire(battery < cfg.min_battery, Action.LAND, "battery", f"battery below {cfg.min_battery} V")
 
-    # --- setpoints: NaN -> hold; clamps; fence
+    # --- setpoints: NaN -> hold; clamps (speed, then step, so the step limit always holds); fence; obstacles
     sp = np.array(inp.setpoint, dtype=np.float64)
+    vel_ff = np.zeros((D, 3)) if inp.setpoint_vel is None else np.nan_to_num(np.array(inp.setpoint_vel, dtype=float))
+    clamped = np.zeros(D, dtype=bool)
     bad = np.asarray(~np.isfinite(sp).all(1))
     fire(bad & (action == Action.TRACK), Action.HOLD, "nan_setpoint", "the proposed setpoint has NaN")
     sp = np.where(bad[:, None], np.where(known[:, None], pos, inp.prev_setpoint), sp)
-    step = sp[:, :2] - pos[:, :2]
-    dist = np.hypot(step[:, 0], step[:, 1])
-    over = known & (dist > cfg.max_step)
-    sp[over, :2] = pos[over, :2] + step[over] * (cfg.max_step / dist[over])[:, None]
-    fire(over & phys, Action.TRACK, "step", f"setpoint more than {cfg.max_step} m from the drone")
     prev = np.asarray(inp.prev_setpoint, dtype=np.float64)
     has_prev = np.isfinite(prev).all(1)
     move = sp[:, :2] - prev[:, :2]
@@ -197,6 +286,11 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     fast = has_prev & (moved > limit)
     sp[fast, :2] = prev[fast, :2] + move[fast] * (limit / moved[fast])[:, None]
     fire(fast & phys, Action.TRACK, "speed", f"setpoint faster than {cfg.max_speed} m/s")
+    step = sp[:, :2] - pos[:, :2]
+    dist = np.hypot(step[:, 0], step[:, 1])
+    over = known & (dist > cfg.max_step)
+    sp[over, :2] = pos[over, :2] + step[over] * (cfg.max_step / dist[over])[:, None]
+    fire(over & phys, Action.TRACK, "step", f"setpoint more than {cfg.max_step} m from the drone")
     z_lo, z_hi = cfg.z_limits
     high = (sp[:, 2] < z_lo) | (sp[:, 2] > z_hi)
     sp[:, 2] = np.clip(sp[:, 2], z_lo, z_hi)
@@ -204,32 +298,69 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     fenced = phys & ((sp[:, :2] < lo) | (sp[:, :2] > hi)).any(1)
     sp[phys, :2] = np.clip(sp[phys, :2], lo, hi)
     fire(fenced, Action.TRACK, "geofence", "setpoint pulled inside the geofence")
+    pushed_xy, near_obstacle = push_out_of_obstacles(sp[:, :2], inp.obstacles, cfg.obstacle_clearance)
+    near_obstacle &= phys
+    sp[near_obstacle, :2] = np.clip(pushed_xy[near_obstacle], lo, hi)
+    fire(near_obstacle, Action.TRACK, "obstacle", f"setpoint kept {cfg.obstacle_clearance} m from obstacles")
+    clamped |= fast | over | high | fenced | near_obstacle
 
-    # --- separation between physical drones with known poses (setpoints and predicted positions)
-    hold_pos = np.where(known[:, None], pos, prev)
+    # --- separation between physical drones with known poses: now, at the setpoints, and ahead
     vel = np.nan_to_num(np.asarray(inp.vel, dtype=np.float64))
-    ahead = pos + vel * cfg.horizon
-    sep_ok = phys & known
+    ok = phys & known
+    i, j = np.triu_indices(D, 1)
+    keep = ok[i] & ok[j]
+    i, j = i[keep], j[keep]
+    r, h = cfg.drone_radius, cfg.drone_half_height
+    now_d = ellipsoid_distance(pos[j] - pos[i], r, h)
+    ahead = closest_approach(pos[j] - pos[i], vel[j] - vel[i], cfg.lookahead, r, h)
+    proposed = closest_approach(sp[j] - sp[i], vel_ff[j] - vel_ff[i], cfg.lookahead, r, h)
+    commanded = closest_approach(pos[j] - pos[i], vel_ff[j] - vel_ff[i], cfg.lookahead, r, h)  # ff from here
+    converging = np.minimum(proposed, commanded) < now_d - 1e-12
+    conflict_pair = (
+        (now_d < HOLD_MARGIN) | (ahead < HOLD_MARGIN) | ((np.minimum(proposed, commanded) < HOLD_MARGIN) & converging)
+    )
     conflict = np.zeros(D, dtype=bool)
-    for points in (sp, ahead, pos):
-        i, j, _ = _pairs_closer(points, sep_ok, cfg.min_separation)
-        rel_p = pos[j, :2] - pos[i, :2]
-        rel_s = sp[j, :2] - sp[i, :2]
-        converging = (rel_s * rel_s).sum(1) <= (rel_p * rel_p).sum(1) + 1e-12
-        now_close = np.hypot(rel_p[:, 0], rel_p[:, 1]) < cfg.min_separation
-        hit = converging | now_close
-        conflict[i[hit]] = True
-        conflict[j[hit]] = True
-    fire(conflict & (action <= Action.HOLD), Action.HOLD, "separation", f"predicted closer than {cfg.min_separation} m")
+    conflict[i[conflict_pair]] = True
+    conflict[j[conflict_pair]] = True
+    fire(conflict & (action <= Action.HOLD), Action.HOLD, "separation", "separation ellipsoids would touch")
 
-    # --- the setpoint to send: TRACK the clamped one, HOLD the measured position
-    action_arr = action
+    # --- the setpoint to send: TRACK the clamped one, HOLD the latched hold point (pushed apart)
+    hold = action == Action.HOLD
+    track = action == Action.TRACK
+    prev_hold = np.full((D, 3), np.nan) if inp.hold_at is None else np.asarray(inp.hold_at, dtype=np.float64)
+    here = np.where(known[:, None], pos, prev)
+    latch = np.where(np.isfinite(prev_hold).all(1)[:, None], prev_hold, here)
+    latch[:, 2] = np.clip(np.where(np.isfinite(latch[:, 2]), latch[:, 2], sp[:, 2]), z_lo, z_hi)
+    push = np.zeros((D, 3))
+    for a, b, d in zip(i[conflict_pair], j[conflict_pair], now_d[conflict_pair], strict=True):
+        delta = pos[a, :2] - pos[b, :2]
+        norm = float(np.hypot(*delta))
+        unit = delta / norm if norm > 1e-9 else np.array([1.0, 0.0])
+        shift = max(0.0, PUSH_MARGIN - float(d)) * 2 * r / 2
+        push[a, :2] += unit * shift
+        push[b, :2] -= unit * shift
     out = np.full((D, 3), np.nan)
-    track = action_arr == Action.TRACK
-    hold = action_arr == Action.HOLD
+    out_vel = np.full((D, 3), np.nan)
     out[track] = sp[track]
-    out[hold] = hold_pos[hold]
-    out[hold, 2] = np.clip(np.where(np.isfinite(out[hold, 2]), out[hold, 2], sp[hold, 2]), z_lo, z_hi)
+    out_vel[track] = np.where(clamped[track, None], 0.0, vel_ff[track])
+    # a held full-state setpoint leaves Mellinger at rest FF_REACH * v past its position (kd / kp): a setpoint
+    # that stops being renewed must not carry the drone through the fence
+    out_vel[track, :2] = np.clip(out_vel[track, :2], (lo - sp[track, :2]) / FF_REACH, (hi - sp[track, :2]) / FF_REACH)
+    pushed = latch + push
+    # a push must not carry a drone toward a third one: where it would, the drone holds at its latch
+    where = np.where(hold[:, None], pushed, np.where(track[:, None], sp, pos))
+    for k in np.flatnonzero(hold & ok & (np.abs(push).sum(1) > 0)):
+        others = np.flatnonzero(ok & (np.arange(D) != k))
+        before = ellipsoid_distance(pos[others] - pos[k], r, h)
+        after = ellipsoid_distance(where[others] - pushed[k], r, h)
+        if (after < np.minimum(before, PUSH_MARGIN) - 1e-9).any():
+            pushed[k] = latch[k]
+    out[hold] = pushed[hold]
+    out_vel[hold] = 0.0
     held = hold & phys
     out[held, :2] = np.clip(out[held, :2], lo, hi)  # a hold never leaves the fence either
-    return ShieldDecision(action=action_arr, setpoint=out, events=tuple(events), names=tuple(names))
+    hold_at = np.full((D, 3), np.nan)
+    hold_at[hold] = out[hold]  # the push accumulates: a held pair keeps moving apart until clear
+    return ShieldDecision(
+        action=action, setpoint=out, events=tuple(events), names=tuple(names), velocity=out_vel, hold_at=hold_at
+    )
