@@ -189,7 +189,7 @@ def _run_state(run_dir: Path) -> dict[str, Any]:
     state = {k: json.loads(v.to_json(orient="records")) for k, v in frames.items()}
     state["files"] = {p.name: read_header(p)["sha256"] for p in sorted((run_dir / "members").glob("*.pt"))}
     saved = json.loads((run_dir / "service_state.json").read_text())
-    assert saved["registry"] == str(run_dir / "registry.db")
+    assert saved["registry"] == "./registry.db"  # relative: a moved run directory keeps its own
     state["state"] = {k: v for k, v in saved.items() if k not in ("mlflow_run_id", "registry")}
     state["summary"] = json.loads((run_dir / "summary.json").read_text())
     state["population"] = (run_dir / "population.csv").read_text()

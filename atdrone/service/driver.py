@@ -181,7 +181,7 @@ def _run(
     elif resume and (run_dir / "config.json").exists():
         check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
     db = registry_path(cfg, run_dir)
-    if saved.get("registry", str(db)) != str(db):
+    if saved.get("registry", registry_record(cfg, run_dir)) != registry_record(cfg, run_dir):
         raise RunError(
             f"{run_dir} keeps its registry at {saved['registry']}, not {db}: resume with the same "
             f"{REGISTRY_DIR_ENV} (or --registry-dir)"
@@ -205,6 +205,16 @@ def _run(
 
 SUMMARY_FILE = "summary.json"
 REGISTRY_DIR_ENV = "ATDRONE_REGISTRY_DIR"
+
+
+def registry_record(cfg: ExperimentConfig, run_dir: Path) -> str:
+    """The registry's place as the state file keeps it: relative to the run directory when inside it
+    (``./registry.db``: a moved or copied run directory resumes with its own), else the absolute path."""
+    db = registry_path(cfg, run_dir)
+    try:
+        return "./" + db.relative_to(run_dir).as_posix()
+    except ValueError:
+        return str(db)
 
 
 def registry_path(cfg: ExperimentConfig, run_dir: Path) -> Path:
@@ -265,7 +275,7 @@ def _generations(
             log.info("removed %d, ended %d MLflow runs of an interrupted attempt", len(forgotten), len(killed))
         if "mlflow_run_id" not in saved:  # from now on a rerun without --resume is refused
             state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": start}
-            _write_json(state_path, {**state, "registry": str(registry_path(cfg, run_dir))})
+            _write_json(state_path, {**state, "registry": registry_record(cfg, run_dir)})
         tracker.log_params({"experiment": cfg.to_dict()})
         labels = ALGORITHMS[cfg.algorithm].result_tags(cfg.algorithm_config())  # e.g. a best response
         tracker.set_tags(
@@ -283,7 +293,7 @@ def _generations(
             _log_generation(tracker, report, run_dir, registry, cfg, run_id, attempt)
             # the generation is saved and logged ("logged": MLflow holds generations 0 .. logged - 1)
             state = {"coordinator": ray.get(coordinator.state.remote()), "mlflow_run_id": run_id, "logged": g + 1}
-            _write_json(state_path, {**state, "registry": str(registry_path(cfg, run_dir))})
+            _write_json(state_path, {**state, "registry": registry_record(cfg, run_dir)})
             if progress:
                 learners = ", ".join(report.learners)
                 print(
