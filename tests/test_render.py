@@ -16,7 +16,7 @@ from PIL import Image
 from atdrone.cli import main
 from atdrone.config import load_task
 from atdrone.envs.core import BatchedPursuit
-from atdrone.envs.render import FrameRenderer, render_frame, save_gif, save_png, two_lines
+from atdrone.envs.render import COLLISION_COLOR, FrameRenderer, render_frame, save_gif, save_png, two_lines
 from atdrone.policies.rules import GreedyPolicy, chase_nearest
 from atdrone.policies.zoo import load_zoo
 from atdrone.population.plots import crossplay_figure
@@ -62,6 +62,27 @@ def test_render_frame_draws_a_given_state_not_the_current_one():
     moved = core.state.copy()
     moved.pos[0, :, 0] = 3.6 - moved.pos[0, :, 0]  # mirror every drone
     assert not np.array_equal(render_frame(core, 0, state=moved), render_frame(core, 0))
+
+
+def _orange_pixels(frame: np.ndarray) -> int:
+    rgb = np.array([int(COLLISION_COLOR[k : k + 2], 16) for k in (1, 3, 5)])
+    return int((np.abs(frame.astype(int) - rgb).sum(-1) < 40).sum())
+
+
+def test_a_collision_is_marked_where_the_simulator_judges_one():
+    core = BatchedPursuit("4p2e1o", num_envs=1, seed=0)
+    core.reset()
+    renderer = FrameRenderer(core, 0)
+    clear = _orange_pixels(renderer.draw())  # the legend's key only
+    apart = core.state.copy()
+    apart.pos[0, 1] = apart.pos[0, 0] + [core.cfg.task.collision_distance + 0.01, 0.0]  # just outside the rule
+    assert _orange_pixels(renderer.draw(apart)) == clear
+    hit = apart.copy()
+    hit.pos[0, 1] = hit.pos[0, 0] + [core.cfg.task.collision_distance - 0.01, 0.0]
+    assert _orange_pixels(renderer.draw(hit)) > clear + 200  # a star behind each of the pair and a line
+    wall = core.state.copy()
+    wall.pos[0, 3] = [1.75, 2.45 - core.cfg.task.safe_radius / 2]  # against the bar
+    assert _orange_pixels(renderer.draw(wall)) > clear + 100
 
 
 def test_record_episode_stops_at_max_steps_and_draws_every_kth_step():

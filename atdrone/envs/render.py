@@ -5,7 +5,8 @@ pyplot), so importing :mod:`atdrone.envs` stays light. A frame shows one environ
 of a :class:`BatchedPursuit`: the arena and its walls, box and disc obstacles,
 pursuers (blue; zoo partners green when a team plays) and evaders (red) with heading
 arrows, each pursuer's capture radius (solid ring) and perception radius (faint ring),
-captured evaders greyed and crossed, a title (a long one on two lines, never under 7 pt),
+captured evaders greyed and crossed, collisions marked (an orange ring around each pursuer that hit a
+teammate or an obstacle, a line between a colliding pair), a title (a long one on two lines, never under 7 pt),
 the step counter and, optionally, the trails the drones left. Recording whole episodes (policies, teams) is
 :func:`atdrone.teams.replay.record_episode`.
 """
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from atdrone.envs.core import BatchedPursuit, PursuitState
+from atdrone.envs.core import BatchedPursuit, PursuitState, judge
 from atdrone.fileio import atomic_write
 
 PURSUER_COLOR = "#1f5fbf"
@@ -33,6 +34,7 @@ ARROW_LENGTH = 0.22  # metres
 DRONE_RADIUS = 0.07  # metres, the drawn body only (the simulator's drones are points)
 FIGURE_DPI = 80
 GRID_COLOR = "#e6e6e0"
+COLLISION_COLOR = "#ff7f0e"
 
 
 class FrameRenderer:
@@ -98,11 +100,24 @@ class FrameRenderer:
         def dot(color: str, label: str, marker: str = "o") -> Line2D:
             return Line2D([], [], linestyle="none", marker=marker, markersize=6, color=color, label=label)
 
+        def ring(color: str, label: str) -> Line2D:
+            return Line2D(
+                [],
+                [],
+                linestyle="none",
+                marker="o",
+                markersize=8,
+                markerfacecolor="none",
+                markeredgewidth=2,
+                color=color,
+                label=label,
+            )
+
         flown = member or "pursuers"
         handles = [dot(PURSUER_COLOR, f"{flown} (learners)" if team else flown)]
         if team:
             handles.append(dot(PARTNER_COLOR, "zoo partners"))
-        handles += [dot(EVADER_COLOR, "evader"), dot("black", "caught", "x")]
+        handles += [dot(EVADER_COLOR, "evader"), dot("black", "caught", "x"), ring(COLLISION_COLOR, "collision")]
         return self.figure.legend(
             handles=handles,
             loc="lower left",
@@ -202,6 +217,8 @@ class FrameRenderer:
             else:
                 dyn.append(ax.add_patch(Circle(xy, DRONE_RADIUS, facecolor=EVADER_COLOR, edgecolor="white", zorder=6)))
 
+        dyn += self._collisions(pos, captured)
+
         live = np.r_[np.ones(P, dtype=bool), ~captured]
         u, v = np.cos(heading) * ARROW_LENGTH, np.sin(heading) * ARROW_LENGTH
         colors = self.pursuer_colors + [EVADER_COLOR] * core.num_e
@@ -231,6 +248,23 @@ class FrameRenderer:
         )
         self.canvas.draw()
         return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
+
+    def _collisions(self, pos: np.ndarray, captured: np.ndarray) -> list[Any]:
+        """Artists marking the collisions of the drawn positions, judged by the simulator's own rule."""
+        from matplotlib.patches import Circle
+
+        core, ax = self.core, self.ax
+        found = judge(pos[None], captured[None], core.cfg, core.geometry, core.pairs)
+        artists: list[Any] = []
+        for i, j in core.pairs[found.hit_pairs[0]]:
+            (line,) = ax.plot(*pos[[i, j]].T, color=COLLISION_COLOR, linewidth=2.5, zorder=5.7)
+            artists.append(line)
+        for i in np.flatnonzero(found.collided[0]):
+            ring = Circle(
+                pos[i], 1.8 * DRONE_RADIUS, facecolor="none", edgecolor=COLLISION_COLOR, linewidth=3, zorder=8
+            )
+            artists.append(ax.add_patch(ring))
+        return artists
 
     def close(self) -> None:
         self.figure.clear()
