@@ -6,9 +6,11 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
 from pathlib import Path
@@ -254,11 +256,19 @@ LISTENING = textwrap.dedent(
 
 
 @pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="needs Linux /proc")
-def test_a_local_run_listens_on_loopback_only():
+def test_a_local_run_listens_on_loopback_only_and_never_joins_a_head_ray_start_left():
     env = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")}
-    out = subprocess.run(
-        [sys.executable, "-c", LISTENING], capture_output=True, text=True, timeout=120, env=env, check=True
-    )
+    # a `ray start --head` on this machine leaves its address in <temp>/ray/ray_current_cluster, which a
+    # plain ray.init() joins (and refuses to, given num_cpus); a local run must start its own Ray instead
+    temp = Path(tempfile.mkdtemp(prefix="atdr-", dir="/tmp"))  # short: Ray's socket paths have a length limit
+    (temp / "ray").mkdir()
+    (temp / "ray" / "ray_current_cluster").write_text("127.0.0.1:1")
+    env["RAY_TMPDIR"] = str(temp)
+    try:
+        out = subprocess.run([sys.executable, "-c", LISTENING], capture_output=True, text=True, timeout=120, env=env)
+    finally:
+        shutil.rmtree(temp, ignore_errors=True)
+    assert out.returncode == 0, out.stderr[-2000:]
     addresses = json.loads(out.stdout.strip().splitlines()[-1])
     assert addresses, "no listening socket found: the probe is broken"
     assert set(addresses) <= {"127.0.0.1", "::1", "::ffff:127.0.0.1"}, addresses

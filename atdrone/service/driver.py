@@ -84,7 +84,8 @@ def init_ray(address: str | None, num_cpus: int | None = None) -> None:
     from ray._private import ray_constants
 
     ray_constants.ENABLE_RAY_CLUSTER = False  # read at import: ray may have been imported before this call
-    ray.init(num_cpus=num_cpus or min(os.cpu_count() or 2, 8), include_dashboard=False, **kwargs)
+    # address "local": a new Ray of this process's own, never one a `ray start` left on this machine
+    ray.init(address="local", num_cpus=num_cpus or min(os.cpu_count() or 2, 8), include_dashboard=False, **kwargs)
 
 
 def check_schedulable(cfg: ExperimentConfig, wait_s: float = 0.0) -> None:
