@@ -1,5 +1,5 @@
-"""Shared fixtures: every test's MLflow store in its own temporary folder; one local Ray for the whole session
-(subprocess drivers join it); the deploy preflight's hover-and-turn flown once per session."""
+"""Shared fixtures: every test's MLflow store in its own temporary folder; one local Ray per test process
+(subprocess drivers join it); the deploy preflight's hover-and-turn flown once per process; xdist groups."""
 
 from __future__ import annotations
 
@@ -9,6 +9,31 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+
+# Under pytest-xdist (`make test` runs `-n 2 --dist loadgroup`): the tests of a module that starts Ray run on
+# one worker (one Ray session per worker, at most two at once, each started as the service starts a local Ray:
+# its own, never another's); the deploy flights (real-time, on UDP) share one worker, so their clocks are not
+# starved by each other; everything else is spread over the workers.
+_RAY_MODULES = (
+    "test_faults",
+    "test_hardening",
+    "test_jobs",
+    "test_learner",
+    "test_moved_run",
+    "test_registry",
+    "test_service",
+    "test_teammate_service",
+)
+_FLIGHT_MODULES = ("test_deploy", "test_simfleet")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        module = item.path.stem
+        if module in _RAY_MODULES:
+            item.add_marker(pytest.mark.xdist_group(module))
+        elif module in _FLIGHT_MODULES:
+            item.add_marker(pytest.mark.xdist_group("flight"))
 
 
 @pytest.fixture(autouse=True)
