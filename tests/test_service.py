@@ -11,6 +11,7 @@ from typing import Any
 
 import mlflow
 import numpy as np
+import pandas as pd
 import pytest
 import ray
 
@@ -21,7 +22,8 @@ from atdrone.policies.zoo import load_zoo
 from atdrone.population import ALGORITHMS
 from atdrone.population.base import Algorithm, GenerationReport, record
 from atdrone.registry import Registry
-from atdrone.service.driver import STATE_FILE, run_experiment
+from atdrone.service import driver
+from atdrone.service.driver import STATE_FILE, run_experiment, select_best
 from atdrone.service.experiment import load_experiment
 from atdrone.teams.evaluation import metrics, run_episodes
 
@@ -433,3 +435,61 @@ def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path
     assert list(members["algorithm"]) == ["fixed", "fixed"]
     with pytest.raises(ConfigError, match=r"fixed\.colour"):
         _cfg(tmp_path, "fixed_bad", algorithm="fixed", fixed={"colour": "red"})
+
+
+# ------------------------------------------------------------------ selection never looks at the test zoos
+def test_the_best_member_is_read_off_the_selection_zoo_alone():
+    table = pd.DataFrame(
+        {
+            "member": ["a", "b", "c", "d"],
+            "validation_SUC": [40.0, 55.0, 55.0, 55.0],  # a tie on SUC: the higher return, then the later member
+            "validation_REW": [9.0, 3.0, 5.0, 5.0],
+            "zoo3_SUC": [90.0, 10.0, 20.0, 0.0],
+        }
+    )
+    members = ["a", "b", "c", "d"]
+    assert select_best(table, "validation", members) == ("d", 55.0)
+    assert select_best(table.assign(validation_REW=[9.0, 6.0, 5.0, 5.0]), "validation", members) == ("b", 55.0)
+    for zoo3 in ([0.0] * 4, [100.0, 0.0, 0.0, 0.0], [float("nan")] * 4):  # any test-zoo result: the same choice
+        assert select_best(table.assign(zoo3_SUC=zoo3), "validation", members) == ("d", 55.0)
+    assert select_best(table, "", members) == ("d", None)  # no selection zoo: the last member
+    assert select_best(table.assign(validation_SUC=float("nan")), "validation", members) == ("d", None)
+
+
+@pytest.mark.parametrize("zoo", ["zoo1", "zoo3"])
+def test_a_selection_zoo_sharing_drones_with_a_test_zoo_is_refused(tmp_path, zoo):
+    with pytest.raises(ConfigError, match=r"select_zoo: .*shares drones with the test zoos \(greedy = zoo1:greedy"):
+        _cfg(tmp_path, "sel", algorithm="sp", select_zoo=zoo)
+    assert _cfg(tmp_path, "sel", algorithm="sp").select_zoo == "validation"
+
+
+def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path, monkeypatch):
+    """A run whose test-zoo results are replaced by planted ones, each preferring another member: the best
+    member and the MLflow champion are those of the (real) validation results every time."""
+    real = driver._evaluate_population
+    planted: dict[str, float] = {}
+
+    def evaluate(coordinator, zoo, episodes):
+        results = real(coordinator, zoo, episodes)
+        if zoo == "zoo3":  # the test zoo says what the plant says
+            for member, row in results.items():
+                row["SUC"], row["REW"] = planted[member], planted[member]
+        return results
+
+    monkeypatch.setattr(driver, "_evaluate_population", evaluate)
+    members = ["sp-g0-0", "sp-g1-0", "sp-g2-0"]
+    chosen = []
+    for k, favourite in enumerate(members):
+        planted.clear()
+        planted.update({m: (95.0 if m == favourite else 5.0) for m in members})
+        uri = f"sqlite:///{tmp_path}/mlflow{k}.db"
+        cfg = _cfg(tmp_path / str(k), "sel", algorithm="sp", generations=3, final_zoo="zoo3", final_episodes=16)
+        summary = run_experiment(cfg, tracking_uri=uri, progress=False)
+        population = pd.read_csv(tmp_path / str(k) / "sel" / "population.csv")
+        assert population["zoo3_SUC"].tolist() == [planted[m] for m in population["member"]]  # the plant took
+        expected, score = select_best(population.drop(columns=["zoo3_SUC", "zoo3_REW"]), "validation", members)
+        champion = mlflow.MlflowClient(uri).get_model_version_by_alias("atdrone-sel", "champion")
+        assert summary["best"] == champion.tags["member"] == expected
+        assert champion.tags["score_metric"] == "validation_SUC" and float(champion.tags["score"]) == score
+        chosen.append(summary["best"])
+    assert len(set(chosen)) == 1  # three different test-zoo favourites, one champion

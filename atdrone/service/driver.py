@@ -60,7 +60,16 @@ def _jsonable(value: Any) -> Any:
 
 LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"  # "0": Ray's node address is 127.0.0.1 (Ray reads it at import)
 # what a resume may change; anything else in config.json must match (atdrone.rundir.check_resume)
-RESUME_MAY_CHANGE = ("generations", "final_zoo", "final_episodes", "gif", "learner_gpus", "learner_threads", "out_dir")
+RESUME_MAY_CHANGE = (
+    "generations",
+    "final_zoo",
+    "final_episodes",
+    "select_zoo",
+    "gif",
+    "learner_gpus",
+    "learner_threads",
+    "out_dir",
+)
 
 
 def init_ray(address: str | None, num_cpus: int | None = None) -> None:
@@ -305,9 +314,11 @@ def _generations(
                 )
             if stop_after is not None and g + 1 >= stop_after:
                 return {"run_dir": str(run_dir), "mlflow_run_id": run_id, "reports": reports, "stopped": True}
-        if progress and cfg.final_zoo:
-            episodes = f"{cfg.final_episodes} episodes per member"
-            print(f"[{cfg.name}] final evaluation on {cfg.final_zoo}, {episodes}", flush=True)
+        zoos = " and ".join(
+            f"{z} ({role})" for z, role in ((cfg.select_zoo, "selects the best"), (cfg.final_zoo, "test")) if z
+        )
+        if progress and zoos:
+            print(f"[{cfg.name}] final evaluation on {zoos}, {cfg.final_episodes} episodes per member", flush=True)
         summary = _finish(tracker, coordinator, registry, cfg, run_dir)
         summary.update({"run_dir": str(run_dir), "mlflow_run_id": run_id, "reports": reports})
     return summary
@@ -436,13 +447,37 @@ def _generation_curves(report: GenerationReport, registry: Any, cfg: ExperimentC
     return curves
 
 
-def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig, run_dir: Path) -> dict[str, Any]:
-    """Evaluate the population on the final zoo, print and log the population table."""
+def select_best(table: pd.DataFrame, select_zoo: str, population: list[str]) -> tuple[str, float | None]:
+    """The run's best member and its score on the selection zoo: the highest ``<select_zoo>_SUC``, ties
+    broken by the higher ``<select_zoo>_REW`` and then by the later (longer trained) member; the last member
+    (no score) without a selection zoo. Only the selection zoo's columns are read, so no test-zoo result can
+    change the choice."""
+    suc, rew = f"{select_zoo}_SUC", f"{select_zoo}_REW"
+    if not select_zoo or suc not in table or not np.isfinite(table[suc].to_numpy(np.float64)).any():
+        return population[-1], None
+    ranked = table.assign(
+        _suc=table[suc].astype(np.float64).fillna(-np.inf),
+        _rew=table[rew].astype(np.float64).fillna(-np.inf) if rew in table else 0.0,
+        _order=np.arange(len(table)),
+    ).sort_values(["_suc", "_rew", "_order"])
+    best = ranked.iloc[-1]
+    return str(best["member"]), float(best["_suc"])
+
+
+def _evaluate_population(coordinator: Any, zoo: str, episodes: int) -> dict[str, dict[str, float]]:
+    """Every member's metrics with partners from ``zoo`` (the coordinator's evaluation)."""
     import ray
 
-    results = (
-        ray.get(coordinator.evaluate_population.remote(cfg.final_zoo, cfg.final_episodes)) if cfg.final_zoo else {}
-    )
+    return ray.get(coordinator.evaluate_population.remote(zoo, episodes))
+
+
+def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig, run_dir: Path) -> dict[str, Any]:
+    """Evaluate the population on the selection zoo and the final (test) zoo, choose the best member on the
+    selection zoo alone, print and log the population table."""
+    import ray
+
+    zoos = [z for z in dict.fromkeys((cfg.select_zoo, cfg.final_zoo)) if z]
+    results = {z: _evaluate_population(coordinator, z, cfg.final_episodes) for z in zoos}
     state = ray.get(coordinator.state.remote())["algorithm"]
     eta, rho, drawn = state.get("eta", {}), state.get("rho", {}), state.get("drawn", {})
     rows = []
@@ -450,25 +485,28 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
         row: dict[str, Any] = {"member": m, "eta": eta.get(m, float("nan"))}
         if rho:  # the last generation's partner distribution and the partner slots drawn from it
             row.update({"rho": rho.get(m, float("nan")), "drawn": int(drawn.get(m, 0))})
-        for k, v in results.get(m, {}).items():
-            row[f"{cfg.final_zoo}_{k}"] = v
+        for zoo in zoos:
+            for k, v in results[zoo].get(m, {}).items():
+                row[f"{zoo}_{k}"] = v
         rows.append(row)
     table = pd.DataFrame(rows)
     graph = {m: {k: float(v[m]) for k, v in (("eta", eta), ("rho", rho)) if m in v} for m in state["population"]}
     ray.get([registry.update_member.remote(m, metrics=g) for m, g in graph.items() if g])  # for registry list
     atomic_write_bytes(run_dir / "population.csv", table.to_csv(index=False).encode())
     tracker.log_artifact(run_dir / "population.csv")
-    suc = f"{cfg.final_zoo}_SUC"
-    if results:
-        best_suc = {f"eval/{cfg.final_zoo}/best_SUC": float(table[suc].max())}
-        tracker.log_metrics(best_suc, step=cfg.generations, once=True)
-        best = str(table.loc[table[suc].idxmax(), "member"])
-    else:
-        best = state["population"][-1]
-    score = float(table.loc[table["member"] == best, suc].iloc[0]) if results else None
+    best, score = select_best(table, cfg.select_zoo, state["population"])
+    selected = {}
+    if score is not None:
+        selected[f"eval/{cfg.select_zoo}/best_SUC"] = score
+    if cfg.final_zoo and f"{cfg.final_zoo}_SUC" in table:  # the chosen member on the test zoo: reported only
+        selected[f"eval/{cfg.final_zoo}/selected_SUC"] = float(
+            table.loc[table["member"] == best, f"{cfg.final_zoo}_SUC"].iloc[0]
+        )
+    if selected:
+        tracker.log_metrics(selected, step=cfg.generations, once=True)
     model = _log_best(tracker, best, score, run_dir, cfg)
     budget = ray.get(coordinator.state.remote())["budget"]
-    _write_json(run_dir / SUMMARY_FILE, {"best": best, "budget": budget, "model": model})
+    _write_json(run_dir / SUMMARY_FILE, {"best": best, "selected_on": cfg.select_zoo, "budget": budget, "model": model})
     return {"population": table, "best": best, "budget": budget, "model": model}
 
 
@@ -484,7 +522,7 @@ def _log_best(tracker: Any, best: str, score: float | None, run_dir: Path, cfg: 
 
     path = run_dir / "members" / f"{best}.pt"
     model, header = load_checkpoint(path)
-    tags = {"member": best, "run": cfg.name, "score_metric": f"{cfg.final_zoo}_SUC" if score is not None else ""}
+    tags = {"member": best, "run": cfg.name, "score_metric": f"{cfg.select_zoo}_SUC" if score is not None else ""}
     version = tracker.register_checkpoint(path, model_name(cfg), score, tags)
     if cfg.gif:
         from atdrone.envs.render import save_gif
@@ -515,7 +553,9 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
         [
             f"{done}\npopulation of {cfg.name} ({cfg.algorithm}, {cfg.task}):",
             table,
-            f"best member: {summary['best']}; run directory: {summary['run_dir']}",
+            f"best member: {summary['best']}"
+            + (f" (chosen on the {cfg.select_zoo} zoo; {cfg.final_zoo} is a test zoo)" if cfg.select_zoo else "")
+            + f"; run directory: {summary['run_dir']}",
             "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
             f"registry: atdrone registry --db {registry_path(cfg, Path(summary['run_dir']))} list",
             f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion)",

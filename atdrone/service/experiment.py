@@ -75,7 +75,10 @@ class ExperimentConfig:
     iterations; updates_per_generation: PPO updates of each learner per generation
     (the length of its learning-rate schedule); num_workers: rollout workers sharing
     ppo.num_envs. eval_episodes: episodes per evaluation match. final_zoo /
-    final_episodes: the zoo every member is evaluated on at the end (empty: skip).
+    final_episodes: the zoo every member is evaluated on at the end (empty: skip), a test
+    zoo: reported, never used to choose. select_zoo: the zoo the run's best member and the
+    MLflow champion are chosen on, final_episodes episodes per member (default the
+    validation zoo; it must share no drone with Zoos 1-3; empty: the last member).
     ppo: overrides of the PPO preset. learner_gpus: GPUs each learner actor asks Ray
     for (its update then runs on CUDA; 0: CPU); learner_threads: torch threads of a
     learner's update on the CPU (the rollout workers are idle while it runs, as in the
@@ -93,6 +96,7 @@ class ExperimentConfig:
     eval_episodes: int = 64
     final_zoo: str = field(default="zoo1", metadata=OPTIONAL)
     final_episodes: int = 200
+    select_zoo: str = field(default="validation", metadata=OPTIONAL)
     preset: str = "default"
     ppo: dict[str, Any] = field(default_factory=dict)
     out_dir: str = "runs"
@@ -149,7 +153,23 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
         _check_zoo(section.zoo, f"{cfg.algorithm}.zoo")
     if cfg.final_zoo:
         _check_zoo(cfg.final_zoo, "final_zoo")
+    if cfg.select_zoo:
+        _check_zoo(cfg.select_zoo, "select_zoo")
+        _check_disjoint(cfg.select_zoo)
     return cfg
+
+
+def _check_disjoint(zoo: str) -> None:
+    """ConfigError at select_zoo when the selection zoo shares a drone with a test zoo (selection on the test set)."""
+    from atdrone.teams.pools import shared_members
+
+    shared = shared_members(load_zoo(zoo))
+    if shared:
+        raise ConfigError(
+            "select_zoo",
+            f"{zoo!r} shares drones with the test zoos ({'; '.join(shared)}): choosing on it would look at the "
+            "test partners; use the validation zoo or another zoo of unseen drones",
+        )
 
 
 def _check_settings(cfg: ExperimentConfig) -> None:
