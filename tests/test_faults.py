@@ -4,6 +4,7 @@ of a generation's bookkeeping. After each, what the run produced equals what an 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -270,3 +271,47 @@ def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uni
     }
     for _, m in Registry(run_dir / "registry.db", create=False).members().iterrows():
         assert runs[m["mlflow_run_id"]] == f"learner-{m['id']}"
+
+
+# ------------------------------------------------------------------ a rollout worker that keeps dying
+class _EndsItsReader:
+    """Unpickled, it ends the process reading it (os._exit): a worker handed it as its job dies before the call
+    runs, and so does every restart of it that Ray retries the call on."""
+
+    def __reduce__(self) -> tuple[Any, tuple[int]]:
+        return os._exit, (3,)
+
+
+def test_a_worker_that_keeps_dying_fails_the_training_naming_it_and_the_cap_instead_of_hanging(local_ray):
+    """Worker 1's job kills every process it reaches; Ray restarts the worker WORKER_RESTARTS times and then gives
+    up, so run_updates (a generation's training) ends with an error naming worker 1 and the cap, in bounded time.
+    Without the cap (max_restarts=-1) the worker restarts forever and the training never ends: the test fails."""
+    import threading
+
+    from atdrone.service.actors import WORKER_RESTARTS, LearnerActor, run_updates
+
+    job, _ = _job()
+    spec = LearnerSpec(ppo=job.ppo, num_e=2, num_p=4, seed=0, total_updates=1)
+    learner = LearnerActor.remote(spec)
+    workers = [RolloutWorkerActor.remote(TASK) for _ in range(2)]
+    outcome: list[BaseException | None] = []
+
+    def train() -> None:
+        try:
+            run_updates(learner, workers, [job, _EndsItsReader()], 1, 8)
+            outcome.append(None)
+        except BaseException as exc:  # handed to the test's thread
+            outcome.append(exc)
+
+    thread = threading.Thread(target=train, daemon=True)
+    try:
+        thread.start()
+        thread.join(timeout=150)  # 8 restarts took 39 s on a 2-core machine under a load of 20
+        assert not thread.is_alive(), "the training still waits on a worker that keeps dying: restarts not capped"
+    finally:
+        for actor in (*workers, learner):
+            ray.kill(actor, no_restart=True)
+    (error,) = outcome
+    assert error is not None
+    message = str(error)
+    assert "rollout worker 1" in message and f"restarted {WORKER_RESTARTS} times" in message, message

@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -24,6 +25,7 @@ from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import pandas as pd
 import pytest
@@ -185,19 +187,90 @@ def test_rayjob_keeps_the_job_api_on_loopback_the_registry_local_and_mlflow_on_a
     )
 
 
-def test_cluster_guide_gives_the_storage_and_gpu_rules_the_code_follows() -> None:
-    """The guide's storage and GPU advice is what the code does: the registry under ATDRONE_REGISTRY_DIR
-    (--registry-dir) on the driver's node, MLflow on a tracking server with a database, and learners that
-    ask Ray for `learner_gpus` GPUs each (a config field, refused when the cluster has none)."""
-    from atdrone.service.experiment import ExperimentConfig
+def _guide_commands() -> list[list[str]]:
+    """Every command of the cluster guide's code blocks as argv (continued lines joined, comments dropped)."""
+    text = (REPO / "cluster" / "README.md").read_text()
+    commands = []
+    for block in re.findall(r"^```[^\n]*\n(.*?)^```", text, flags=re.M | re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            if argv := shlex.split(line, comments=True):
+                commands.append(argv)
+    return commands
 
+
+def _parse(parser: Any, argv: list[str], command: list[str]) -> Any:
+    """``parser``'s reading of ``argv``, or a failure naming the guide's command it refused."""
+    try:
+        return parser.parse_args(argv)
+    except SystemExit:
+        pytest.fail(f"the cluster guide's command is refused: {shlex.join(command)}")
+
+
+def test_the_cluster_guides_job_commands_are_what_the_scripts_take() -> None:
+    """Every `python jobs/*.py ...` of the guide's code blocks parses with the script's own parser, names a config,
+    task and zoo that load, and gives the run directory and the registry absolute paths (the guide's storage
+    rule); every flag of the guide's script table is an option of the script; the GPU section's
+    `--learner-gpus 1` and `"learner_gpus": 1` reach the experiment config."""
+    from atdrone.config import load_task
+    from atdrone.policies.zoo import load_zoo
+    from atdrone.service.experiment import load_experiment
+
+    scripts = {"jobs/train.py": _load_script(TRAIN), "jobs/evaluate.py": _load_script(EVALUATE)}
+    ran = {name: 0 for name in scripts}
+    for command in _guide_commands():
+        for name, script in scripts.items():
+            if name not in command:
+                continue
+            args = _parse(script.build_parser(), command[command.index(name) + 1 :], command)
+            ran[name] += 1
+            absolute = ("/", "$PWD/")
+            if name == "jobs/train.py":
+                assert load_experiment(args.config).name
+                assert args.out_dir.startswith(absolute), command
+                assert args.registry_dir is None or args.registry_dir.startswith(absolute), command
+            else:
+                load_task(args.task), load_zoo(args.zoo)
+                assert str(args.out_dir).startswith(absolute), command
+    assert ran == {"jobs/train.py": 2, "jobs/evaluate.py": 1}  # sections 1 and 3 train, section 1 evaluates
     guide = (REPO / "cluster" / "README.md").read_text()
-    assert "learner_gpus" in {f for f in ExperimentConfig.__dataclass_fields__}
-    for text in ("ATDRONE_REGISTRY_DIR", "--registry-dir", "mlflow server", "postgresql://", '"learner_gpus": 1'):
-        assert text in guide, text
-    assert "ask Ray for no GPU" not in guide and "--dashboard-host=0.0.0.0" not in guide
-    for command in ("ray job submit", "ray up cluster/onprem.yaml", "kubectl apply -f cluster/rayjob.yaml"):
-        assert command in guide
+    for name, script in scripts.items():
+        (row,) = [line for line in guide.splitlines() if line.startswith(f"| `{name} ")]
+        flags = set(re.findall(r"(?<![\w-])--[a-z][a-z-]*", row))
+        assert len(flags) >= 5 and flags <= set(script.build_parser()._option_string_actions), (name, flags)
+    args = _parse(scripts["jobs/train.py"].build_parser(), ["c.json", "--learner-gpus", "1"], ["--learner-gpus"])
+    assert args.learner_gpus == 1.0 and '"learner_gpus": 1' in guide and "--learner-gpus 1` overrides it" in guide
+    config = REPO / "configs" / "experiments" / "hola_quick.json"
+    assert load_experiment(config, learner_gpus=1).learner_gpus == 1
+    assert load_experiment(config).learner_gpus == 0  # the guide: "default 0: learners run on CPUs"
+
+
+def test_the_cluster_guides_ray_and_mlflow_commands_are_options_of_those_tools() -> None:
+    """The guide's `ray start` and `mlflow server` lines parse as those commands (their click parsers) and keep
+    the job API and the tracking server on 127.0.0.1; the tracking server's store is a database, not sqlite."""
+    import click
+    from mlflow.cli import cli as mlflow_cli
+    from ray.scripts.scripts import start as ray_start
+
+    seen = set()
+    for command in _guide_commands():
+        argv = [word for word in command if "=" not in word or word.startswith("-")]  # env assignments dropped
+        if argv[:2] == ["ray", "start"]:
+            tool: click.Command = ray_start
+        elif argv[:2] == ["mlflow", "server"]:
+            tool = mlflow_cli.commands["server"]
+        else:
+            continue
+        seen.add(argv[1])
+        with tool.make_context(argv[1], argv[2:], resilient_parsing=True) as context:
+            params = context.params
+        unknown = [w.split("=")[0] for w in argv[2:] if w.startswith("--")]
+        known = {opt for p in tool.params for opt in p.opts}
+        assert set(unknown) <= known, (command, set(unknown) - known)
+        if argv[1] == "start":
+            assert params["head"] and params["dashboard_host"] == "127.0.0.1", command
+        else:
+            assert params["host"] == "127.0.0.1" and params["backend_store_uri"].startswith("postgresql://"), command
+    assert seen == {"start", "server"}
 
 
 def test_a_damaged_service_state_or_another_registry_dir_is_one_line_and_status_2(

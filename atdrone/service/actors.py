@@ -222,6 +222,25 @@ class LearnerActor:
         return save_checkpoint(path, self.learner.model, header)
 
 
+class WorkerFailed(RuntimeError):
+    """A rollout worker died once more than its :data:`WORKER_RESTARTS` restarts allow: the generation fails."""
+
+
+def _name_a_spent_worker(fragments: Sequence[Any], exc: Exception) -> None:
+    """Raise :class:`WorkerFailed` naming the first worker whose fragment failed because the worker is dead for good
+    (Ray's own error names neither the worker's index nor the cap, and blames memory); else return."""
+    for i, fragment in enumerate(fragments):
+        if not ray.wait([fragment], timeout=0)[0]:
+            continue
+        try:
+            ray.get(fragment)
+        except ray.exceptions.RayActorError as died:
+            raise WorkerFailed(
+                f"rollout worker {i} died and was restarted {WORKER_RESTARTS} times, the cap "
+                f"(WORKER_RESTARTS): the generation fails; its last death: {str(died).splitlines()[0]}"
+            ) from exc
+
+
 def update_seed(job_seed: int, update: int) -> int:
     """The seed of the learners' action noise in fragment ``update`` of the job seeded ``job_seed``."""
     return int(np.random.SeedSequence([int(job_seed), int(update)]).generate_state(1)[0])
@@ -253,7 +272,11 @@ def run_updates(
         weights = learner.get_weights.remote()
         fragments = [w.collect.remote(job, weights, steps, u, sent) for w, job in zip(workers, jobs, strict=True)]
         sent.append(weights)
-        stats = ray.get(learner.update.remote(*fragments))
+        try:
+            stats = ray.get(learner.update.remote(*fragments))
+        except ray.exceptions.RayError as exc:
+            _name_a_spent_worker(fragments, exc)
+            raise
         stats["perf/pursuer_steps_per_s"] = stats["train/samples"] / (time.perf_counter() - t0)
         history.append(stats)
         if on_update is not None:
