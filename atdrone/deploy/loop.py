@@ -520,7 +520,7 @@ class Flight:
                 fence = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
                 decision = _hold_all(decision, self.hold_at, pos, self._airborne() & np.isfinite(pos).all(1), fence)
                 self.notes.setdefault("", []).append("policy_late")
-            held_for = self._held_with_a_pursuer(decision, captured)
+            held_for = self._held_with_a_pursuer(decision, captured, pos)
             c4 = time.perf_counter()
             if not outcome and self._apply(decision):
                 outcome = "shield"
@@ -553,16 +553,19 @@ class Flight:
         approach = float(((prev - dist) * ~captured).sum()) / rw.approach_scale
         return float(rw.capture * newly.sum() + rw.approach * approach + rw.collision * collided.any())
 
-    def _held_with_a_pursuer(self, decision: ShieldDecision, captured: np.ndarray) -> np.ndarray:
-        """Evader drones (E,) not yet captured that the separation rule held together with a pursuer: their
-        predicted distance fell below the capture reach (:func:`capture_reach`)."""
+    def _held_with_a_pursuer(self, decision: ShieldDecision, captured: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """Evader drones (E,) not yet captured that the separation rule held together with a pursuer no
+        further away than the capture reach plus what the pursuer flies at the trained speed within the
+        shield's look-ahead: the pursuer's own approach was about to bring it within the reach
+        (:func:`capture_reach`). An evader running at a pursuer from further away is not captured."""
         out = np.zeros(len(captured), dtype=bool)
         P = len(self.pursuers)
         if not self.evader_drones or decision.pairs is None:
             return out
+        near = self.judged_task.task.capture_range + self.task.players.velocity_p * self.shield_cfg.lookahead
         for a, b in decision.pairs:
             lo, hi = min(a, b), max(a, b)
-            if lo < P <= hi:
+            if lo < P <= hi and np.hypot(*(pos[lo, :2] - pos[hi, :2])) <= near:
                 out[hi - P] = True
         return out & ~captured
 
