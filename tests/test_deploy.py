@@ -284,6 +284,27 @@ class Chase:
         pass
 
 
+def held_at_an_evader_without_capture(frame: pd.DataFrame, near: float = 0.55) -> int:
+    """Ticks on the policy legs where the separation rule held a flying evader drone and a pursuer within
+    ``near`` of it, and the evader did not begin to land (its capture) within the next two ticks."""
+    legs = frame[frame.step >= 0]
+    grid = legs.pivot_table(index=["episode", "step"], columns="drone", values=["x", "y"])
+    held = legs.assign(h=legs.events.str.contains("separation")).pivot_table(
+        index=["episode", "step"], columns="drone", values="h", aggfunc="any"
+    )
+    state = legs.pivot_table(index=["episode", "step"], columns="drone", values="state", aggfunc="first")
+    roles = legs.groupby("drone").role.first()
+    count = 0
+    for e in roles.index[roles == "evader"]:
+        for p in roles.index[roles != "evader"]:
+            d = np.hypot(grid["x"][e] - grid["x"][p], grid["y"][e] - grid["y"][p])
+            both = held[e].fillna(False) & held[p].fillna(False) & (d <= near) & (state[e] == "flying")
+            for episode, step in both.index[both.to_numpy(bool)]:
+                later = state[e].loc[episode].loc[step + 1 : step + 2]
+                count += not (later == "landing").any()
+    return count
+
+
 def test_pursuers_steered_at_evader_drones_capture_them_and_every_pair_stays_apart(
     tmp_path: Path, registry_member: tuple[str, str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -300,6 +321,7 @@ def test_pursuers_steered_at_evader_drones_capture_them_and_every_pair_stays_apa
     assert (episodes.captured >= 1).all(), episodes
     frame = ticks(result)
     assert min_scaled_separation(frame) >= 1.0  # pursuers and evader drones alike, captures included
+    assert held_at_an_evader_without_capture(frame) == 0
     # while a captured evader drone took off again, the drones in the air kept their setpoints and altitude
     retook = frame[(frame.episode == 1) & (frame.step < 0) & (frame.state == "taking_off")]
     assert len(retook), "no captured evader drone took off again"

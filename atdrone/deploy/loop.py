@@ -386,6 +386,11 @@ class Flight:
 
     def _go_to_spawn(self, spawn_p: np.ndarray, spawn_e: np.ndarray) -> None:
         """Take off landed drones, then fly every drone to its spawn position on a planned transit."""
+        # a drone captured on the episode's last tick is still landing: down first, then up again with the rest
+        down_by = self.clock.now() + max(1.0, self.cfg.flight_height / 0.5) + 1.0
+        while any(self.state[n] == "landing" for n in self.names) and self.clock.now() < down_by:
+            if not self._hold_tick():
+                return
         landed = [n for n in self.names if self.state[n] == "landed"]
         if landed:
             self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
