@@ -8,7 +8,8 @@ already there, so a killed run resumes where it stopped. Then prints (and writes
 ``--out``) JSON: episodes flown, chunks that ended early and why (a lost link among
 them), link-loss events in the logs, the pursuers' median ground speed on the policy
 legs, min separation, and the gap of SUC/COL/AST to the training simulator's
-evaluation of the same team on the same task and horizon (500 episodes).
+evaluation of the same team on the same task and horizon (500 episodes), and the
+simulator's SUC/COL/AST at the fleet's capture reach (docs/deploy.md, "Capturing an evader drone").
 
 Usage: nice -n 10 python benchmarks/deploy_gap.py [--episodes 50] [--chunk 5] [--clock-rate 1]
        [--horizon 500] [--work-dir reports/deploy_gap] [--out benchmarks/results/deploy_gap_4p2e1o.json]
@@ -17,6 +18,7 @@ Usage: nice -n 10 python benchmarks/deploy_gap.py [--episodes 50] [--chunk 5] [-
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -28,9 +30,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from atdrone.deploy.config import load_deploy
+from atdrone.deploy.config import DeployConfig, load_deploy
 from atdrone.deploy.flightlog import episode_metrics, ground_speed
 from atdrone.deploy.job import build_team, effective_task, run_deploy, simulation_gap
+from atdrone.deploy.loop import Team
 from atdrone.fileio import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -63,6 +66,22 @@ def _chunk(args: argparse.Namespace, k: int, work: Path) -> dict[str, Any]:
     }
 
 
+def _by_capture_range(cfg: DeployConfig, team: Team) -> dict[str, dict[str, float]]:
+    """The simulator's SUC/COL/AST for the same team and horizon at the task's capture range and at the
+    fleet's capture reach (0.30 m) and its farthest hold-capture (0.60 m; docs/deploy.md): how much of the
+    gap the capture rule alone explains."""
+    from atdrone.policies.zoo import load_zoo
+    from atdrone.teams.evaluation import metrics, run_episodes
+
+    task = effective_task(cfg)
+    out = {}
+    for reach in (task.task.capture_range, 0.30, 0.60):
+        t = dataclasses.replace(task, task=dataclasses.replace(task.task, capture_range=reach))
+        records = run_episodes(team.learner, t, load_zoo(cfg.partners.zoo).policies(), 500, seed=cfg.seed)
+        out[f"{reach:.2f}"] = {k: float(v) for k, v in metrics(records).items() if k in ("SUC", "COL", "AST")}
+    return out
+
+
 def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool) -> dict[str, Any]:
     """The report over the chunks so far (the gap to the simulator only when ``final``), written to --out."""
     episodes = pd.concat([pd.read_parquet(Path(c["log_dir"]) / "episodes.parquet") for c in chunks], ignore_index=True)
@@ -86,6 +105,7 @@ def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool)
         "ground_speed_median_per_chunk": speeds,
         "ground_speed_median": float(np.median([s for s in speeds if math.isfinite(s)] or [math.nan])),
         "gap": simulation_gap(cfg, effective_task(cfg), team, fleet) if final and len(episodes) else None,
+        "simulator_by_capture_range": _by_capture_range(cfg, team) if final else None,
         "wall_s": float(sum(c["wall_s"] for c in chunks)),
         "load_average": list(os.getloadavg()),
         "python": platform.python_version(),

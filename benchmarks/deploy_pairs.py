@@ -4,9 +4,10 @@ pairs the shield's separation rule held.
 Reads flight logs (directories with flight.parquet and episodes.parquet) and prints JSON:
 per episode the outcome, the smallest horizontal pursuer-evader distance on the policy
 legs, each captured evader drone's distance to its nearest pursuer when the capture was
-judged (the tick before it began to land), and the ticks on which a drone was held by ``separation``, by the kind of pair
-(pursuer-pursuer, pursuer-evader, evader-evader). The partner of a held drone is the
-nearest other airborne drone also held that tick (the rule holds both of a pair).
+judged (the tick before it began to land), and the ticks on which a drone was held by
+``separation``, by the kind of pair (pursuer-pursuer, pursuer-evader, evader-evader). The
+partner of a held drone is the nearest other airborne drone also held that tick (the rule
+holds both of a pair).
 
 Usage: python benchmarks/deploy_pairs.py LOG_DIR [LOG_DIR ...]
 """

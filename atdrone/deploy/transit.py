@@ -93,11 +93,11 @@ def _detours(
     points = [mid[:2] + n * off for off in (0.4, -0.4, 0.8, -0.8, 1.2, -1.2)]
     points += [start[:2] + 0.5 * np.array([np.cos(a), np.sin(a)]) for a in np.arange(8) * np.pi / 4]
     if obstacles is not None:
-        out = clearance + 0.1
-        around = [(cx + sx * (hx + out), cy) for cx, cy, hx, _ in obstacles.boxes for sx in (-1, 1)]
-        around += [(cx, cy + sy * (hy + out)) for cx, cy, _, hy in obstacles.boxes for sy in (-1, 1)]
+        beyond = clearance + 0.1
+        around = [(cx + sx * (hx + beyond), cy) for cx, cy, hx, _ in obstacles.boxes for sx in (-1, 1)]
+        around += [(cx, cy + sy * (hy + beyond)) for cx, cy, _, hy in obstacles.boxes for sy in (-1, 1)]
         around += [
-            (cx + (r + out) * np.cos(a), cy + (r + out) * np.sin(a))
+            (cx + (r + beyond) * np.cos(a), cy + (r + beyond) * np.sin(a))
             for cx, cy, r in obstacles.discs
             for a in np.arange(4) * np.pi / 2
         ]
