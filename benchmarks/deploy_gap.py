@@ -58,6 +58,7 @@ def _chunk(args: argparse.Namespace, k: int, work: Path) -> dict[str, Any]:
     return {
         "chunk": k,
         "seed": cfg.seed,
+        "clock_rate": args.clock_rate,
         "log_dir": str(result.log_dir),
         "episodes_flown": result.episodes_flown,
         "ended_early": result.ended_early,
@@ -90,9 +91,13 @@ def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool)
     fleet = {**episode_metrics(episodes), "episodes": len(episodes)}
     cfg = load_deploy(ROOT / "configs" / "deploy" / "gap_4p2e1o.json", horizon=args.horizon)
     team, member = build_team(cfg)
+    rates: dict[float, list[int]] = {}
+    for c in chunks:  # a resumed run may fly its later chunks at another rate (a loaded host)
+        rates.setdefault(float(c.get("clock_rate", args.clock_rate)), []).append(int(c["chunk"]))
     report = {
-        "config": f"configs/deploy/gap_4p2e1o.json, clock rate {args.clock_rate}, horizon {args.horizon}, "
+        "config": f"configs/deploy/gap_4p2e1o.json, clock rate {'/'.join(map(str, rates))}, horizon {args.horizon}, "
         f"{len(chunks)} chunks of {args.chunk}, seeds {args.seed}..{args.seed + len(chunks) - 1}",
+        "clock_rate_chunks": {str(r): ks for r, ks in rates.items()},
         "complete": int(sum(c["episodes_flown"] for c in chunks)) >= args.episodes,
         "member": member,
         "episodes_flown": int(sum(c["episodes_flown"] for c in chunks)),
