@@ -8,7 +8,8 @@ already there, so a killed run resumes where it stopped. Then prints (and writes
 ``--out``) JSON: episodes flown, chunks that ended early and why (a lost link among
 them), link-loss events in the logs, the pursuers' median ground speed on the policy
 legs, min separation, and the gap of SUC/COL/AST to the training simulator's
-evaluation of the same team on the same task and horizon (500 episodes).
+evaluation of the same team on the same task and horizon (500 episodes), and the
+simulator's SUC/COL/AST at the fleet's capture reach (docs/deploy.md, "Capturing an evader drone").
 
 Usage: nice -n 10 python benchmarks/deploy_gap.py [--episodes 50] [--chunk 5] [--clock-rate 1]
        [--horizon 500] [--work-dir reports/deploy_gap] [--out benchmarks/results/deploy_gap_4p2e1o.json]
@@ -17,6 +18,7 @@ Usage: nice -n 10 python benchmarks/deploy_gap.py [--episodes 50] [--chunk 5] [-
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -28,9 +30,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from atdrone.deploy.config import load_deploy
+from atdrone.deploy.config import DeployConfig, load_deploy
 from atdrone.deploy.flightlog import episode_metrics, ground_speed
 from atdrone.deploy.job import build_team, effective_task, run_deploy, simulation_gap
+from atdrone.deploy.loop import Team
 from atdrone.fileio import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -55,12 +58,29 @@ def _chunk(args: argparse.Namespace, k: int, work: Path) -> dict[str, Any]:
     return {
         "chunk": k,
         "seed": cfg.seed,
+        "clock_rate": args.clock_rate,
         "log_dir": str(result.log_dir),
         "episodes_flown": result.episodes_flown,
         "ended_early": result.ended_early,
         "link_lost_rows": int(frame["events"].str.contains("link_lost").sum()) if len(frame) else 0,
         "wall_s": time.time() - started,
     }
+
+
+def _by_capture_range(cfg: DeployConfig, team: Team) -> dict[str, dict[str, float]]:
+    """The simulator's SUC/COL/AST for the same team and horizon at the task's capture range and at the
+    fleet's capture reach (0.30 m) and its farthest hold-capture (0.60 m; docs/deploy.md): how much of the
+    gap the capture rule alone explains."""
+    from atdrone.policies.zoo import load_zoo
+    from atdrone.teams.evaluation import metrics, run_episodes
+
+    task = effective_task(cfg)
+    out = {}
+    for reach in (task.task.capture_range, 0.30, 0.60):
+        t = dataclasses.replace(task, task=dataclasses.replace(task.task, capture_range=reach))
+        records = run_episodes(team.learner, t, load_zoo(cfg.partners.zoo).policies(), 500, seed=cfg.seed)
+        out[f"{reach:.2f}"] = {k: float(v) for k, v in metrics(records).items() if k in ("SUC", "COL", "AST")}
+    return out
 
 
 def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool) -> dict[str, Any]:
@@ -71,9 +91,13 @@ def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool)
     fleet = {**episode_metrics(episodes), "episodes": len(episodes)}
     cfg = load_deploy(ROOT / "configs" / "deploy" / "gap_4p2e1o.json", horizon=args.horizon)
     team, member = build_team(cfg)
+    rates: dict[float, list[int]] = {}
+    for c in chunks:  # a resumed run may fly its later chunks at another rate (a loaded host)
+        rates.setdefault(float(c.get("clock_rate", args.clock_rate)), []).append(int(c["chunk"]))
     report = {
-        "config": f"configs/deploy/gap_4p2e1o.json, clock rate {args.clock_rate}, horizon {args.horizon}, "
+        "config": f"configs/deploy/gap_4p2e1o.json, clock rate {'/'.join(map(str, rates))}, horizon {args.horizon}, "
         f"{len(chunks)} chunks of {args.chunk}, seeds {args.seed}..{args.seed + len(chunks) - 1}",
+        "clock_rate_chunks": {str(r): ks for r, ks in rates.items()},
         "complete": int(sum(c["episodes_flown"] for c in chunks)) >= args.episodes,
         "member": member,
         "episodes_flown": int(sum(c["episodes_flown"] for c in chunks)),
@@ -86,6 +110,7 @@ def _report(args: argparse.Namespace, chunks: list[dict[str, Any]], final: bool)
         "ground_speed_median_per_chunk": speeds,
         "ground_speed_median": float(np.median([s for s in speeds if math.isfinite(s)] or [math.nan])),
         "gap": simulation_gap(cfg, effective_task(cfg), team, fleet) if final and len(episodes) else None,
+        "simulator_by_capture_range": _by_capture_range(cfg, team) if final else None,
         "wall_s": float(sum(c["wall_s"] for c in chunks)),
         "load_average": list(os.getloadavg()),
         "python": platform.python_version(),

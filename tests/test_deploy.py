@@ -250,6 +250,87 @@ def test_drones_steered_at_each_other_never_touch_ellipsoids(
     assert set(end_states(frame).values()) == {"landed"}
 
 
+class Chase:
+    """A policy steering pursuers 0, 2 at evader 0 and 1, 3 at evader 1 (the nearest free one once theirs is
+    captured), around the end of 4p2e1o's bar
+    (x 1.0-2.5 at y 2.5) nearer to it when the bar is in between."""
+
+    name = "chase"
+
+    def act(self, batch: Any) -> np.ndarray:
+        from atdrone.envs.kinematics import turn_towards
+
+        poses = batch.poses
+        P = len(poses.heading[0]) - 2
+        free = np.flatnonzero(~poses.captured[0]) + P
+        out = []
+        for slot in batch.slot:
+            d = poses.pos[0, free] - poses.pos[0, slot]
+            if not len(d):
+                out.append(0.0)
+                continue
+            me = poses.pos[0, slot]
+            mine = P + slot % 2  # two pursuers on each evader, then all on the one left
+            target = poses.pos[0, mine] if mine in free else me + d[np.argmin(np.hypot(d[:, 0], d[:, 1]))]
+            if (me[1] - 2.5) * (target[1] - 2.5) < 0:  # on the other side of the bar's row: past an end first
+                x = me[0] + (target[0] - me[0]) * (2.5 - me[1]) / (target[1] - me[1])
+                if 0.8 < x < 2.7:
+                    target = np.array([0.5 if me[0] + x < 3.5 else 3.1, 2.5])
+            step = target - me
+            out.append(turn_towards(poses.heading[0, slot], np.arctan2(step[1], step[0])))
+        return np.array(out, dtype=float)
+
+    def reset(self, done: np.ndarray) -> None:
+        pass
+
+
+def held_at_an_evader_without_capture(frame: pd.DataFrame, near: float = 0.55) -> int:
+    """Ticks on the policy legs where the separation rule held a flying evader drone and a pursuer within
+    ``near`` of it, and the evader did not begin to land (its capture) within the next two ticks."""
+    legs = frame[frame.step >= 0]
+    grid = legs.pivot_table(index=["episode", "step"], columns="drone", values=["x", "y"])
+    held = legs.assign(h=legs.events.str.contains("separation")).pivot_table(
+        index=["episode", "step"], columns="drone", values="h", aggfunc="any"
+    )
+    state = legs.pivot_table(index=["episode", "step"], columns="drone", values="state", aggfunc="first")
+    roles = legs.groupby("drone").role.first()
+    count = 0
+    for e in roles.index[roles == "evader"]:
+        for p in roles.index[roles != "evader"]:
+            d = np.hypot(grid["x"][e] - grid["x"][p], grid["y"][e] - grid["y"][p])
+            both = held[e].fillna(False) & held[p].fillna(False) & (d <= near) & (state[e] == "flying")
+            for episode, step in both.index[both.to_numpy(bool)]:
+                later = state[e].loc[episode].loc[step + 1 : step + 2]
+                count += not (later == "landing").any()
+    return count
+
+
+def test_pursuers_steered_at_evader_drones_capture_them_and_every_pair_stays_apart(
+    tmp_path: Path, registry_member: tuple[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The shield keeps every pair 0.25 m apart, beyond the task's 0.2 m capture range: a pursuer that the
+    separation rule stops at an evader drone has captured it (before, it was held there and no capture could
+    happen). A captured drone lands and takes off again for the next episode while the others keep flying,
+    and the transit there leads around the bar."""
+    from atdrone.deploy import job
+    from atdrone.deploy.loop import Team
+
+    monkeypatch.setattr(job, "build_team", lambda cfg: (Team(Chase(), [Chase(), Chase()]), "chase"))
+    result = fly(tmp_path, registry_member, episodes=2, horizon=300)
+    assert not result.ended_early and result.episodes_flown == 2, result.ended_early
+    episodes = pd.read_parquet(result.log_dir / "episodes.parquet")
+    assert episodes.captured.iloc[0] >= 1, episodes  # the second episode's (re)start is checked below
+    frame = ticks(result)
+    assert min_scaled_separation(frame) >= 1.0  # pursuers and evader drones alike, captures included
+    assert held_at_an_evader_without_capture(frame) == 0
+    # while a captured evader drone took off again, the drones in the air kept their setpoints and altitude
+    retook = frame[(frame.episode == 1) & (frame.step < 0) & (frame.state == "taking_off")]
+    assert len(retook), "no captured evader drone took off again"
+    flying = frame[frame.state == "flying"]
+    assert flying.z.min() > 0.4, flying.loc[flying.z.idxmin()]
+    landed_before_any_stop(result, frame)
+
+
 # ---------------------------------------------------------------- preflight
 @pytest.mark.parametrize(
     ("changes", "failed"),

@@ -353,6 +353,24 @@ def test_a_transit_plan_keeps_every_pair_apart_through_a_cycle_and_around_the_ba
     assert obstacle_distance(_sampled(plan)[:, 0, :2], CORNER_BAR).min() >= 0.15 - 1e-6
 
 
+def test_a_transit_after_captures_at_the_top_goes_around_the_bar_ends() -> None:
+    """Where a flight left the drones after both evader drones were caught at the top (a transit the planner
+    refused: three pursuers whose lines, and every detour beside them, crossed the bar)."""
+    from atdrone.deploy.shield import obstacle_distance
+    from atdrone.deploy.transit import plan_transit
+
+    start = np.array([[1.17, 4.34], [1.87, 3.70], [1.32, 3.36], [2.89, 4.32], [0.25, 4.74], [3.34, 4.75]])
+    end = np.array([[1.10, 0.70], [1.76, 0.59], [2.00, 0.35], [2.52, 0.76], [1.26, 4.66], [1.66, 4.50]])
+    start, end = (np.c_[p, np.full(6, 0.5)] for p in (start, end))
+    plan = plan_transit(start, end, 0.3, 0.125, 0.375, bounds=geofence(ARENA, CFG.margin), obstacles=CORNER_BAR)
+    pts = _sampled(plan)
+    assert min(obstacle_distance(pts[:, k, :2], CORNER_BAR).min() for k in range(6)) >= 0.15 - 1e-6
+    for i in range(6):
+        for j in range(i + 1, 6):
+            assert ellipsoid_distance(pts[:, j] - pts[:, i], 0.125, 0.375).min() >= 1.3 - 1e-6
+    np.testing.assert_allclose(pts[-1], end, atol=1e-9)
+
+
 def test_a_transit_that_cannot_be_planned_is_refused() -> None:
     from atdrone.deploy.transit import TransitBlocked, plan_transit
 

@@ -47,6 +47,7 @@ from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.flightlog import FlightLog
 from atdrone.deploy.mocap import MocapSource, Pose
 from atdrone.deploy.shield import (
+    HOLD_MARGIN,
     Action,
     Obstacles,
     ShieldConfig,
@@ -70,6 +71,17 @@ ARRIVED = 0.05  # m: a transit is over when every drone is this close to its tar
 AIRBORNE = ("taking_off", "flying", "landing")
 CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
 CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
+
+
+def capture_reach(capture_range: float, shield_cfg: ShieldConfig) -> float:
+    """The distance (m) at which a pursuer captures an evader drone: the task's capture range, but at least
+    :data:`CAPTURE_SLACK` beyond the separation ellipsoids (the shield keeps drones ``2 * drone_radius``
+    apart). It lies beyond the distance at which the shield holds a pair (``HOLD_MARGIN`` ellipsoids), so
+    a pair the separation rule holds was predicted within the reach: the loop counts that as a capture
+    (docs/deploy.md, "Capturing an evader drone")."""
+    reach = max(capture_range, 2 * shield_cfg.drone_radius + CAPTURE_SLACK)
+    assert reach > HOLD_MARGIN * 2 * shield_cfg.drone_radius, "the capture reach must lie beyond the hold"
+    return reach
 
 
 def advance_reference(
@@ -259,9 +271,11 @@ class Flight:
         self.rng = np.random.default_rng(cfg.seed)
         self.escape = EscapeParams()
         self.horizon = cfg.horizon or task.task.task_horizon
-        if self.evader_drones:  # the shield keeps drones 2 * drone_radius apart: a capture counts 5 cm beyond
-            reach = max(task.task.capture_range, 2 * cfg.shield.drone_radius + CAPTURE_SLACK)
-            self.task = task = dc_replace(task, task=dc_replace(task.task, capture_range=reach))
+        # the task as judged: with evader drones a capture counts at ``capture_reach`` (see capture_reach)
+        self.judged_task = task
+        if self.evader_drones:
+            reach = capture_reach(task.task.capture_range, cfg.shield)
+            self.judged_task = dc_replace(task, task=dc_replace(task.task, capture_range=reach))
         self.state = dict.fromkeys(self.names, "idle")
         self.ticks = Ticker(clock, self.dt)
         self.t0 = clock.now()
@@ -372,12 +386,25 @@ class Flight:
 
     def _go_to_spawn(self, spawn_p: np.ndarray, spawn_e: np.ndarray) -> None:
         """Take off landed drones, then fly every drone to its spawn position on a planned transit."""
+        # a drone captured on the episode's last tick is still landing: down first, then up again with the rest
+        down_by = self.clock.now() + max(1.0, self.cfg.flight_height / 0.5) + 1.0
+        while any(self.state[n] == "landing" for n in self.names) and self.clock.now() < down_by:
+            if not self._hold_tick():
+                return
         landed = [n for n in self.names if self.state[n] == "landed"]
         if landed:
             self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
             self._set_state(landed, "taking_off")
-            self._watch(self.cfg.takeoff_duration + 0.5)
-            self._set_state([n for n in landed if self.state[n] == "taking_off"], "flying")
+            # the drones in the air keep their setpoint stream (held where they are): without it the firmware
+            # levels them out after 0.5 s and stops their motors after 2 s
+            end = self.clock.now() + self.cfg.takeoff_duration + 0.5
+            while self.clock.now() < end:
+                if not self._hold_tick():
+                    return
+            up = [n for n in landed if self.state[n] == "taking_off"]
+            self._set_state(up, "flying")
+            k = [self.names.index(n) for n in up]
+            self.hold_at[k], self.prev_setpoint[k] = np.nan, np.nan  # taken over from the planner
         if self.aborted:
             return
         targets = np.concatenate([spawn_p, spawn_e if self.evader_drones else np.zeros((0, 2))])
@@ -447,6 +474,7 @@ class Flight:
         ret, steps, outcome = 0.0, 0, ""
         self.team.new_episode(self.rng)
         prev_dist: np.ndarray | None = None
+        held_for = np.zeros(E, dtype=bool)  # evader drones the shield held with a pursuer last tick
         while not outcome:
             tick = self._begin_tick()
             lat: dict[str, float] = {}
@@ -459,13 +487,13 @@ class Flight:
             pos_p = _fill(pos[:P, :2], ref[:P])
             pos_e = ref_e if not self.evader_drones else _fill(pos[P:, :2], ref[P:])
             # the episode so far: capture and collision at the measured poses
-            judged = judge(np.concatenate([pos_p, pos_e])[None], captured[None], self.task, self.geometry)
+            judged = judge(np.concatenate([pos_p, pos_e])[None], captured[None], self.judged_task, self.geometry)
             dist = judged.evader_distance[0]
+            newly = (judged.captured[0] | held_for) & ~captured  # within the reach now, or held for it
             if prev_dist is not None:
-                ret += self._reward(prev_dist, dist, captured, judged)
-            prev_dist = np.where(judged.captured[0], 0.0, dist)
-            newly = judged.captured[0] & ~captured
-            captured = judged.captured[0]
+                ret += self._reward(prev_dist, dist, captured, newly, judged.collided[0])
+            captured = captured | newly
+            prev_dist = np.where(captured, 0.0, dist)
             if self.evader_drones and newly.any():
                 self._land([self.evader_drones[j] for j in np.flatnonzero(newly)])
             if captured.all():
@@ -497,6 +525,7 @@ class Flight:
                 fence = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
                 decision = _hold_all(decision, self.hold_at, pos, self._airborne() & np.isfinite(pos).all(1), fence)
                 self.notes.setdefault("", []).append("policy_late")
+            held_for = self._held_with_a_pursuer(decision, captured, pos)
             c4 = time.perf_counter()
             if not outcome and self._apply(decision):
                 outcome = "shield"
@@ -522,12 +551,28 @@ class Flight:
             f"{int(captured.sum())}/{E} captured, {self.ticks.overruns} tick overruns so far"
         )
 
-    def _reward(self, prev: np.ndarray, dist: np.ndarray, captured: np.ndarray, judged: Any) -> float:
+    def _reward(
+        self, prev: np.ndarray, dist: np.ndarray, captured: np.ndarray, newly: np.ndarray, collided: np.ndarray
+    ) -> float:
         rw = self.task.task.reward
         approach = float(((prev - dist) * ~captured).sum()) / rw.approach_scale
-        return float(
-            rw.capture * judged.captured_now[0].sum() + rw.approach * approach + rw.collision * judged.collided[0].any()
-        )
+        return float(rw.capture * newly.sum() + rw.approach * approach + rw.collision * collided.any())
+
+    def _held_with_a_pursuer(self, decision: ShieldDecision, captured: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """Evader drones (E,) not yet captured that the separation rule held together with a pursuer no
+        further away than the capture reach plus what the pursuer flies at the trained speed within the
+        shield's look-ahead: the pursuer's own approach was about to bring it within the reach
+        (:func:`capture_reach`). An evader running at a pursuer from further away is not captured."""
+        out = np.zeros(len(captured), dtype=bool)
+        P = len(self.pursuers)
+        if not self.evader_drones or decision.pairs is None:
+            return out
+        near = self.judged_task.task.capture_range + self.task.players.velocity_p * self.shield_cfg.lookahead
+        for a, b in decision.pairs:
+            lo, hi = min(a, b), max(a, b)
+            if lo < P <= hi and np.hypot(*(pos[lo, :2] - pos[hi, :2])) <= near:
+                out[hi - P] = True
+        return out & ~captured
 
     def _evaders(
         self,
@@ -785,7 +830,7 @@ def _hold_all(
     velocity[newly] = 0.0
     hold_at = np.full_like(setpoint, np.nan) if decision.hold_at is None else decision.hold_at.copy()
     hold_at[newly] = latch[newly]
-    return ShieldDecision(action, setpoint, decision.events, decision.names, velocity, hold_at)
+    return ShieldDecision(action, setpoint, decision.events, decision.names, velocity, hold_at, decision.pairs)
 
 
 def _fill(measured: np.ndarray, fallback: np.ndarray) -> np.ndarray:

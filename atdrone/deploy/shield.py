@@ -138,7 +138,8 @@ class ShieldEvent:
 @dataclass(frozen=True)
 class ShieldDecision:
     """Per drone: the action, the setpoint and velocity to send (TRACK/HOLD; NaN otherwise), the events and
-    the latched hold points to pass to the next tick (NaN where a drone is not held)."""
+    the latched hold points to pass to the next tick (NaN where a drone is not held); the pairs held for
+    separation."""
 
     action: np.ndarray  # (D,) int
     setpoint: np.ndarray  # (D, 3)
@@ -146,6 +147,7 @@ class ShieldDecision:
     names: tuple[str, ...] = ()
     velocity: np.ndarray | None = None  # (D, 3)
     hold_at: np.ndarray | None = None  # (D, 3)
+    pairs: np.ndarray | None = None  # (K, 2) drone indices of the pairs the separation rule held
 
     def lost(self) -> list[str]:
         """The drones whose link is lost."""
@@ -362,5 +364,11 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     hold_at = np.full((D, 3), np.nan)
     hold_at[hold] = out[hold]  # the push accumulates: a held pair keeps moving apart until clear
     return ShieldDecision(
-        action=action, setpoint=out, events=tuple(events), names=tuple(names), velocity=out_vel, hold_at=hold_at
+        action=action,
+        setpoint=out,
+        events=tuple(events),
+        names=tuple(names),
+        velocity=out_vel,
+        hold_at=hold_at,
+        pairs=np.stack([i[conflict_pair], j[conflict_pair]], 1),
     )

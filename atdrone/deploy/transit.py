@@ -77,14 +77,31 @@ def _clear(paths: np.ndarray, k: int, others: list[int], radius: float, half_hei
     return bool((scaled >= margin[k, others][:, None] - 1e-9).all())
 
 
-def _detours(start: np.ndarray, end: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None) -> list[np.ndarray]:
+def _detours(
+    start: np.ndarray,
+    end: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray] | None,
+    obstacles: Obstacles | None = None,
+    clearance: float = 0.15,
+) -> list[np.ndarray]:
     """Waypoints: 0.4, 0.8 and 1.2 m either side of the line's middle, then 0.5 m from the start in eight
-    directions (a first step out of a crowd), inside ``bounds``."""
+    directions (a first step out of a crowd), then past each end and side of every obstacle (``clearance``
+    + 0.1 m out: the way around a bar whose middle the line crosses), nearest first, inside ``bounds``."""
     mid = (start + end) / 2
     d = end[:2] - start[:2]
     n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-9) if np.hypot(*d) > 1e-9 else np.array([1.0, 0.0])
     points = [mid[:2] + n * off for off in (0.4, -0.4, 0.8, -0.8, 1.2, -1.2)]
     points += [start[:2] + 0.5 * np.array([np.cos(a), np.sin(a)]) for a in np.arange(8) * np.pi / 4]
+    if obstacles is not None:
+        beyond = clearance + 0.1
+        around = [(cx + sx * (hx + beyond), cy) for cx, cy, hx, _ in obstacles.boxes for sx in (-1, 1)]
+        around += [(cx, cy + sy * (hy + beyond)) for cx, cy, _, hy in obstacles.boxes for sy in (-1, 1)]
+        around += [
+            (cx + (r + beyond) * np.cos(a), cy + (r + beyond) * np.sin(a))
+            for cx, cy, r in obstacles.discs
+            for a in np.arange(4) * np.pi / 2
+        ]
+        points += sorted((np.array(p) for p in around), key=lambda p: float(np.hypot(*(p - mid[:2]))))
     out = []
     for p in points:
         w = mid.copy()
@@ -146,7 +163,7 @@ def plan_transit(
             for n, k in enumerate(order):
                 options: list[np.ndarray | None] = [None]
                 if use_detours and straight[k] > 0:
-                    options += _detours(start[k], end[k], bounds)
+                    options += _detours(start[k], end[k], bounds, obstacles, clearance)
                 placed = False
                 for w in options:
                     if obstacles is not None:  # the route itself must keep clear of the obstacles
