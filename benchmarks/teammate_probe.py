@@ -22,11 +22,11 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from atdrone.fileio import atomic_write_text
 from atdrone.learn.ppo import PPOConfig
 from atdrone.learn.rollout import RolloutWorker
 from atdrone.models.checkpoint import load_checkpoint
@@ -144,8 +144,7 @@ def main() -> None:
     text = json.dumps(result, indent=2)
     print(text)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
+        atomic_write_text(args.out, text + "\n")
 
 
 if __name__ == "__main__":
