@@ -3,9 +3,11 @@
 For every episode in the given flight logs, the drones' positions on its last policy tick
 are the starts; ``--draws`` spawn draws of the task (drones clear of each other, targets
 inside the fence and off the obstacles, as the loop makes them) are the targets. Prints
-how many of those transits :func:`~atdrone.deploy.transit.plan_transit` refused.
+how many of those transits :func:`~atdrone.deploy.transit.plan_transit` refused, and how
+many episode ends would end the flight: the loop redraws the spawn up to
+``SPAWN_DRAWS`` times, so consecutive groups of that many draws from one end, all refused.
 
-Usage: python benchmarks/deploy_transits.py LOG_DIR [LOG_DIR ...] [--draws 20]
+Usage: python benchmarks/deploy_transits.py LOG_DIR [LOG_DIR ...] [--draws 20] (a multiple of SPAWN_DRAWS)
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from atdrone.config import load_task
+from atdrone.deploy.loop import SPAWN_DRAWS
 from atdrone.deploy.shield import Obstacles, ShieldConfig, geofence, push_out_of_obstacles
 from atdrone.deploy.transit import TransitBlocked, plan_transit, separated_spawn
 from atdrone.envs.core import spawn
@@ -53,9 +56,9 @@ def main() -> None:
         pos, _ = spawn(task, rng, 1)
         return pos[0, :P], pos[0, P:]
 
-    blocked = 0
-    for start in starts:
-        for _ in range(args.draws):
+    refused = np.zeros((len(starts), args.draws), dtype=bool)
+    for s, start in enumerate(starts):
+        for k in range(args.draws):
             pos_p, pos_e = separated_spawn(draw, shield.drone_radius, shield.drone_half_height)
             end = np.c_[np.r_[pos_p, pos_e], np.full(len(start), args.height)]
             end[:, :2], _ = push_out_of_obstacles(np.clip(end[:, :2], lo, hi), obstacles, shield.obstacle_clearance)
@@ -72,9 +75,21 @@ def main() -> None:
                     clearance=shield.obstacle_clearance,
                 )
             except TransitBlocked:
-                blocked += 1
-    n = len(starts) * args.draws
-    print(json.dumps({"episode_ends": len(starts), "transits": n, "blocked": blocked, "rate": blocked / max(n, 1)}))
+                refused[s, k] = True
+    groups = refused[:, : args.draws // SPAWN_DRAWS * SPAWN_DRAWS].reshape(len(starts), -1, SPAWN_DRAWS)
+    print(
+        json.dumps(
+            {
+                "episode_ends": len(starts),
+                "transits": int(refused.size),
+                "blocked": int(refused.sum()),
+                "rate": float(refused.mean()) if refused.size else 0.0,
+                "spawn_draws": SPAWN_DRAWS,
+                "redraw_groups": int(groups[..., 0].size),
+                "flight_ending": int(groups.all(-1).sum()),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ import os
 import signal
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -167,11 +168,37 @@ def test_a_registry_member_whose_file_changed_is_refused(tmp_path: Path) -> None
 
 
 # ---------------------------------------------------------------- a whole flight
-def test_sim_flight_of_4p2e1o_with_evader_drones(tmp_path: Path, registry_member: tuple[str, str]) -> None:
+def refusing_transits(monkeypatch: pytest.MonkeyPatch, refuse: Callable[[int], bool]) -> list[np.ndarray]:
+    """Make the loop's transit planner refuse its ``n``-th call (from 0) where ``refuse(n)``; the targets of
+    every call, in order."""
+    from atdrone.deploy import loop
+    from atdrone.deploy.transit import TransitBlocked, plan_transit
+
+    targets: list[np.ndarray] = []
+
+    def planner(start: np.ndarray, end: np.ndarray, *args: Any, **kwargs: Any) -> Any:
+        targets.append(np.array(end))
+        if refuse(len(targets) - 1):
+            raise TransitBlocked("refused by the test")
+        return plan_transit(start, end, *args, **kwargs)
+
+    monkeypatch.setattr(loop, "plan_transit", planner)
+    return targets
+
+
+def test_sim_flight_of_4p2e1o_with_evader_drones(
+    tmp_path: Path, registry_member: tuple[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two episodes; the transit to the second episode's first spawn draw is refused (drones in the way), and
+    the flight goes on to another draw of the task's spawn."""
+    targets = refusing_transits(monkeypatch, lambda n: n == 1)
     result = fly(tmp_path, registry_member, episodes=2, horizon=30)
     assert result.preflight.ok, result.preflight.text()
     assert not result.ended_early and result.episodes_flown == 2
     frame = ticks(result)
+    assert len(targets) == 3 and np.abs(targets[2] - targets[1]).max() > 0.1
+    redrawn = frame[frame.events.str.contains("spawn_redrawn")]
+    assert set(redrawn.episode) == {1} and (redrawn.step < 0).all()
     cfg = load_deploy(sim_doc(tmp_path, registry_member))
     names = [d.name for d in cfg.drones]
     assert set(end_states(frame).values()) == {"landed"}, end_states(frame)
@@ -193,6 +220,16 @@ def test_sim_flight_of_4p2e1o_with_evader_drones(tmp_path: Path, registry_member
     assert counts["setpoint_full_state"] > 50 and counts.get("setpoint_position", 0) == 0
     assert counts["estop_keepalive"] > 50 and counts.get("idle_planner_motors_off", 0) == 0
     landed_before_any_stop(result, frame)
+
+
+def test_a_transit_blocked_on_every_spawn_draw_lands_everyone(
+    tmp_path: Path, registry_member: tuple[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    targets = refusing_transits(monkeypatch, lambda n: True)
+    result = fly(tmp_path, registry_member, episodes=1, horizon=30)
+    assert result.ended_early == "transit blocked: refused by the test (5 spawn draws)"
+    assert len(targets) == 5 and result.episodes_flown == 0
+    assert set(end_states(ticks(result)).values()) == {"landed"}
 
 
 def test_pursuers_fly_the_trained_speed(tmp_path: Path, registry_member: tuple[str, str]) -> None:

@@ -68,6 +68,7 @@ from atdrone.policies.base import DroneBatch, Policy
 OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
 LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
 ARRIVED = 0.05  # m: a transit is over when every drone is this close to its target
+SPAWN_DRAWS = 5  # spawn draws tried before a blocked transit ends the flight
 AIRBORNE = ("taking_off", "flying", "landing")
 CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
 CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
@@ -384,13 +385,14 @@ class Flight:
         separated_spawn(draw_physical, self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height)
         return self._drawn
 
-    def _go_to_spawn(self, spawn_p: np.ndarray, spawn_e: np.ndarray) -> None:
-        """Take off landed drones, then fly every drone to its spawn position on a planned transit."""
+    def _go_to_spawn(self, spawn_p: np.ndarray, spawn_e: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Take off landed drones, then fly every drone to its spawn position on a planned transit; the spawn
+        flown to (another draw where no transit reaches the first), or None when the flight was aborted."""
         # a drone captured on the episode's last tick is still landing: down first, then up again with the rest
         down_by = self.clock.now() + max(1.0, self.cfg.flight_height / 0.5) + 1.0
         while any(self.state[n] == "landing" for n in self.names) and self.clock.now() < down_by:
             if not self._hold_tick():
-                return
+                return None
         landed = [n for n in self.names if self.state[n] == "landed"]
         if landed:
             self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
@@ -400,46 +402,53 @@ class Flight:
             end = self.clock.now() + self.cfg.takeoff_duration + 0.5
             while self.clock.now() < end:
                 if not self._hold_tick():
-                    return
+                    return None
             up = [n for n in landed if self.state[n] == "taking_off"]
             self._set_state(up, "flying")
             k = [self.names.index(n) for n in up]
             self.hold_at[k], self.prev_setpoint[k] = np.nan, np.nan  # taken over from the planner
         if self.aborted:
-            return
-        targets = np.concatenate([spawn_p, spawn_e if self.evader_drones else np.zeros((0, 2))])
+            return None
         flying = self._airborne()
         pos, _, _ = self.measured()
         start = np.where(np.isfinite(pos), pos, np.r_[0.0, 0.0, self.cfg.flight_height])
         start[:, 2] = self.cfg.flight_height
-        end = np.c_[targets, np.full(len(targets), self.cfg.flight_height)]
-        # the task's spawn regions reach into the fence margin: a target the shield would clip is never reached
-        lo, hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
-        end[:, :2], _ = push_out_of_obstacles(
-            np.clip(end[:, :2], lo, hi), self.obstacles, self.shield_cfg.obstacle_clearance
-        )
-        end[:, :2] = np.clip(end[:, :2], lo, hi)
-        end[~flying] = start[~flying]
         lo_hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
-        planning = self._worker.submit(
-            plan_transit,
-            start,
-            end,
-            self.cfg.goto_speed,
-            self.shield_cfg.drone_radius,
-            self.shield_cfg.drone_half_height,
-            bounds=lo_hi,
-            obstacles=self.obstacles,
-            clearance=self.shield_cfg.obstacle_clearance,
-        )
-        while not planning.done():  # the loop keeps ticking (and the heartbeat fed) while the plan is made
-            if not self._hold_tick():
-                return
-        try:
-            plan = planning.result()
-        except TransitBlocked as exc:
-            self.aborted = f"transit blocked: {exc}"
-            return
+        blocked: TransitBlocked | None = None
+        for draw in range(SPAWN_DRAWS):
+            if draw:  # no transit to that draw: the task's spawn distribution, conditioned on a reachable one
+                spawn_p, spawn_e = self._spawn()
+                self.notes.setdefault("", []).append("spawn_redrawn")
+            targets = np.concatenate([spawn_p, spawn_e if self.evader_drones else np.zeros((0, 2))])
+            end = np.c_[targets, np.full(len(targets), self.cfg.flight_height)]
+            # the task's spawn regions reach into the fence margin: a target the shield would clip is never reached
+            end[:, :2], _ = push_out_of_obstacles(
+                np.clip(end[:, :2], *lo_hi), self.obstacles, self.shield_cfg.obstacle_clearance
+            )
+            end[:, :2] = np.clip(end[:, :2], *lo_hi)
+            end[~flying] = start[~flying]
+            planning = self._worker.submit(
+                plan_transit,
+                start,
+                end,
+                self.cfg.goto_speed,
+                self.shield_cfg.drone_radius,
+                self.shield_cfg.drone_half_height,
+                bounds=lo_hi,
+                obstacles=self.obstacles,
+                clearance=self.shield_cfg.obstacle_clearance,
+            )
+            while not planning.done():  # the loop keeps ticking (and the heartbeat fed) while the plan is made
+                if not self._hold_tick():
+                    return None
+            try:
+                plan = planning.result()
+                break
+            except TransitBlocked as exc:
+                blocked = exc
+        else:
+            self.aborted = f"transit blocked: {blocked} ({SPAWN_DRAWS} spawn draws)"
+            return None
         began = self.clock.now()
         deadline = began + plan.total + 5.0
         while self.clock.now() < deadline and not self.aborted:
@@ -452,16 +461,17 @@ class Flight:
             self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             done = np.hypot(*(pos[:, :2] - end[:, :2]).T) < ARRIVED
             if tick - began >= plan.total and done[flying].all():
-                return
+                return spawn_p, spawn_e
         if not self.aborted:
             self.aborted = "transit did not arrive in time"
+        return None
 
     def _fly_episode(self) -> None:
         self.episode_done = False
-        spawn_p, spawn_e = self._spawn()
-        self._go_to_spawn(spawn_p, spawn_e)
-        if self.aborted:
+        reached = self._go_to_spawn(*self._spawn())
+        if reached is None or self.aborted:
             return
+        spawn_p, spawn_e = reached
         P, E = len(self.pursuers), self.task.players.num_e
         heading = np.full(P, np.pi / 2)
         pos0, _, _ = self.measured()

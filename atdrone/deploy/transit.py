@@ -152,6 +152,10 @@ def plan_transit(
         ellipsoid_distance(end[j] - end[i], radius, half_height),
     )
     pair[i, j] = pair[j, i] = np.minimum(margin, at)
+    # a drone that begins nearer an obstacle than ``clearance`` (held there by the shield, with noise) must only
+    # not come nearer than that
+    if obstacles is not None:
+        keep = np.minimum(clearance, obstacle_distance(start[:, :2], obstacles))
     rng = np.random.default_rng(0)
     orders = [list(range(D)), sorted(range(D), key=lambda i: -straight[i]), sorted(range(D), key=lambda i: straight[i])]
     orders += [list(rng.permutation(D)) for _ in range(tries)]
@@ -168,7 +172,7 @@ def plan_transit(
                 for w in options:
                     if obstacles is not None:  # the route itself must keep clear of the obstacles
                         route = path(k, 0.0, w)[:, :2]
-                        if (obstacle_distance(route, obstacles) < clearance - 1e-9).any():
+                        if (obstacle_distance(route, obstacles) < keep[k] - 1e-9).any():
                             continue
                     for d in np.arange(0.0, max_delay + 1e-9, delay_step):
                         paths[k] = path(k, float(d), w)
