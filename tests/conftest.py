@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -37,10 +39,39 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 @pytest.fixture(autouse=True)
-def _mlflow_in_tmp(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A test that names no tracking URI writes to a store under a temporary folder (runs and artifacts)."""
-    store = tmp_path_factory.mktemp("mlflow")
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}/mlflow.db")
+def _mlflow_in_tmp(
+    tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch, mlflow_store: Callable[[Path], str]
+) -> None:
+    """A test that names no tracking URI writes to a new store under a temporary folder (runs and artifacts)."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_store(tmp_path_factory.mktemp("mlflow") / "mlflow.db"))
+
+
+@pytest.fixture(scope="session")
+def _mlflow_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An empty MLflow sqlite store with MLflow's schema, made by MLflow once per test process."""
+    import logging
+
+    import mlflow
+
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    db = tmp_path_factory.mktemp("mlflow-template") / "mlflow.db"
+    mlflow.MlflowClient(f"sqlite:///{db}").search_experiments(max_results=1)
+    return db
+
+
+@pytest.fixture
+def mlflow_store(_mlflow_template: Path) -> Callable[[Path], str]:
+    """``mlflow_store(path)``: a new MLflow store at ``path`` (a copy of the template), its tracking URI.
+
+    MLflow migrates a new sqlite store's schema step by step (about 1.5 s, the same every time); a test that
+    needs a fresh store gets the result of that, not a repeat of it."""
+
+    def make(path: Path) -> str:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(_mlflow_template, path)
+        return f"sqlite:///{path}"
+
+    return make
 
 
 @pytest.fixture(scope="session")

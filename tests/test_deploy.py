@@ -24,7 +24,7 @@ from atdrone.cli import main as cli_main
 from atdrone.config import ConfigError
 from atdrone.deploy.config import load_deploy
 from atdrone.deploy.job import run_deploy
-from atdrone.deploy.loop import StopRequest
+from atdrone.deploy.loop import COLUMN_CLEAR, StopRequest
 from atdrone.deploy.shield import geofence
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -32,6 +32,12 @@ CHECKPOINT = ROOT / "configs" / "zoos" / "checkpoints" / "sp_high.pt"
 RATE = 2.0
 TOC_CACHE = Path(tempfile.gettempdir()) / "atdrone-test-toc"
 AIRBORNE = ("taking_off", "flying", "landing")
+
+
+@pytest.fixture(autouse=True)
+def _mlflow_db(tmp_path: Path, mlflow_store: Callable[[Path], str]) -> None:
+    """The flights' MLflow store (``tmp_path / "mlflow.db"``), made with its schema."""
+    mlflow_store(tmp_path / "mlflow.db")
 
 
 @pytest.fixture(scope="module")
@@ -363,6 +369,11 @@ def test_pursuers_steered_at_evader_drones_capture_them_and_every_pair_stays_apa
     # while a captured evader drone took off again, the drones in the air kept their setpoints and altitude
     retook = frame[(frame.episode == 1) & (frame.step < 0) & (frame.state == "taking_off")]
     assert len(retook), "no captured evader drone took off again"
+    # ... through a column no drone in the air was near: those hovering beside it were flown off it first
+    for t, up in retook.groupby("t"):
+        air = frame[(frame.t == t) & (frame.state == "flying")]
+        for _, d in up.iterrows():
+            assert np.hypot(air.x - d.x, air.y - d.y).min() >= COLUMN_CLEAR - 0.05, (t, d.drone)
     flying = frame[frame.state == "flying"]
     assert flying.z.min() > 0.4, flying.loc[flying.z.idxmin()]
     landed_before_any_stop(result, frame)

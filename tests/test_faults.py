@@ -212,13 +212,15 @@ def _wait_for_the_dead_drivers_actors(name: str) -> None:
     pytest.fail(f"the killed driver's registry actor registry-{name} is still alive")
 
 
-def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uninterrupted_run(local_ray, tmp_path):
+def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uninterrupted_run(
+    local_ray, tmp_path, mlflow_store
+):
     """One run is SIGKILLed at ten points of its life, each resumed by the next driver (joined to the same
     Ray): before and after registry writes of the coordinator and the driver, inside the MLflow logging of
     a generation, around the state file, after the model registration and after the summary. The last
     resume completes it. Registry, checkpoints, state, MLflow runs (names, statuses, parents, metric
     points, artifacts) and model versions equal those of an uninterrupted run of the same config."""
-    reference_uri, faulty_uri = f"sqlite:///{tmp_path}/ref.db", f"sqlite:///{tmp_path}/faulty.db"
+    reference_uri, faulty_uri = mlflow_store(tmp_path / "ref.db"), mlflow_store(tmp_path / "faulty.db")
     doc = {**FAULTY, "name": "faults_t"}
     run_experiment(
         load_experiment({**doc, "out_dir": str(tmp_path / "ref")}), tracking_uri=reference_uri, progress=False

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -90,12 +91,15 @@ def test_a_name_that_matches_nothing_lists_what_was_tried(tmp_path: Path, monkey
 
 
 def test_a_registered_model_resolves_to_its_checkpoint_and_member(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    mlflow_store: Callable[[Path], str],
 ) -> None:
     from atdrone.tracking import Tracker
 
     monkeypatch.chdir(tmp_path)
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = mlflow_store(tmp_path / "mlflow.db")
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     run_dir = _run(tmp_path, "hola_quick", {"hola-g3-0": SP_HIGH})
     tracker = Tracker(uri)

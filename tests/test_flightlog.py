@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -146,12 +147,14 @@ def test_empty_log_writes_and_summarizes(tmp_path: Path) -> None:
     assert "SUC -" in format_summary(s)
 
 
-def test_log_to_mlflow_records_a_deploy_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_log_to_mlflow_records_a_deploy_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mlflow_store: Callable[[Path], str]
+) -> None:
     from mlflow import MlflowClient
 
     monkeypatch.chdir(tmp_path)  # MLflow's default artifact root is relative to the working directory
     directory = hand_log().write(tmp_path / "flight")
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = mlflow_store(tmp_path / "mlflow.db")
     run_id = log_to_mlflow(directory, uri, "hand-flight")
     run = MlflowClient(tracking_uri=uri).get_run(run_id)
     assert run.info.run_name == "hand-flight" and run.data.tags["kind"] == "deploy"

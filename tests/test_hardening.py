@@ -108,8 +108,8 @@ def test_config_changes_lists_what_differs_beyond_what_may_change():
     assert config_changes(saved, {**saved, "generations": 9}, ["generations"]) == []
 
 
-def test_the_local_trainer_refuses_to_resume_a_different_experiment(tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_the_local_trainer_refuses_to_resume_a_different_experiment(tmp_path, mlflow_store):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     cfg = load_train_config({**TINY_TRAIN, "out_dir": str(tmp_path)})
     run_training(cfg, progress=False, uri=uri)
     saved = (tmp_path / "tiny" / "config.json").read_bytes()
@@ -125,8 +125,8 @@ def _service(tmp_path: Path, name: str, **kw) -> dict:
     return {**TINY_SERVICE, "name": name, "out_dir": str(tmp_path), **kw}
 
 
-def test_the_service_refuses_to_resume_a_different_experiment(local_ray, tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_the_service_refuses_to_resume_a_different_experiment(local_ray, tmp_path, mlflow_store):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     first = run_experiment(load_experiment(_service(tmp_path, "mix")), tracking_uri=uri, progress=False, stop_after=1)
     # every member new in generation 0 (Pi_0's two snapshots, not only N_0) has its zoo SUC for the curves
     members = Registry(tmp_path / "mix" / "registry.db").members(run="mix")
@@ -325,12 +325,12 @@ def test_an_experiment_name_the_mlflow_filters_cannot_hold_is_refused_when_loade
     assert load_experiment(_service(tmp_path, "fine", experiment="obrien-run.2")).experiment == "obrien-run.2"
 
 
-def test_sigterm_ends_the_runs_killed_like_ctrl_c(tmp_path):
+def test_sigterm_ends_the_runs_killed_like_ctrl_c(tmp_path, mlflow_store):
     """`ray job stop` sends SIGTERM: inside run_experiment it raises KeyboardInterrupt, so the parent and the
     nested run end KILLED (not left RUNNING), and the handler is restored afterwards."""
     from atdrone.service.driver import _sigterm_as_interrupt
 
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    uri = mlflow_store(tmp_path / "mlflow.db")
     tracker = Tracker(uri)
     before = signal.getsignal(signal.SIGTERM)
     ids = []
@@ -388,10 +388,10 @@ def test_a_key_error_inside_the_deploy_is_reported_as_a_bug_not_a_user_error(tmp
         main(["--debug", "deploy", "sim_4p2e1o", "--out-dir", str(tmp_path)])
 
 
-def test_a_best_member_registered_again_by_a_resumed_run_is_the_same_version(tmp_path):
+def test_a_best_member_registered_again_by_a_resumed_run_is_the_same_version(tmp_path, mlflow_store):
     """register_checkpoint finds the run's version of the member before making one: a resume that registers
     again gets the same version; another member of the run, or another run, gets a new one."""
-    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    tracker = Tracker(mlflow_store(tmp_path / "mlflow.db"))
     path = _checkpoint(tmp_path / "m.pt", seed=0)
     with tracker.run("again", "run") as run_id:
         first = tracker.register_checkpoint(path, "atdrone-again", 40.0, {"member": "m"})
@@ -404,8 +404,8 @@ def test_a_best_member_registered_again_by_a_resumed_run_is_the_same_version(tmp
     assert len(versions) == 3
 
 
-def test_metrics_logged_once_per_step_add_no_second_point(tmp_path):
-    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+def test_metrics_logged_once_per_step_add_no_second_point(tmp_path, mlflow_store):
+    tracker = Tracker(mlflow_store(tmp_path / "mlflow.db"))
     with tracker.run("once", "parent") as run_id:
         tracker.log_metrics({"gen/a": 1.0}, step=0, run_id=run_id, once=True)
         tracker.log_metrics({"gen/a": 1.0, "gen/b": 2.0}, step=0, run_id=run_id, once=True)  # b is new at 0
@@ -416,7 +416,7 @@ def test_metrics_logged_once_per_step_add_no_second_point(tmp_path):
     assert [(m.step, m.value) for m in client.get_metric_history(run_id, "gen/b")] == [(0, 2.0)]
 
 
-def test_two_runs_of_one_name_in_two_out_dirs_keep_their_own_mlflow_runs(tmp_path):
+def test_two_runs_of_one_name_in_two_out_dirs_keep_their_own_mlflow_runs(tmp_path, mlflow_store):
     """The records of a run are found by its run directory's key, not its name: resuming b/exp ends and
     removes b's dead nested runs only, never the live ones of a/exp (same name, same store)."""
     from atdrone.service.driver import run_tags
@@ -424,7 +424,7 @@ def test_two_runs_of_one_name_in_two_out_dirs_keep_their_own_mlflow_runs(tmp_pat
     cfg = load_experiment(_service(tmp_path, "exp"))
     a, b = run_tags(cfg, tmp_path / "a" / "exp"), run_tags(cfg, tmp_path / "b" / "exp")
     assert a["atdrone.run"] == b["atdrone.run"] == "exp" and a["atdrone.run_dir"] != b["atdrone.run_dir"]
-    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    tracker = Tracker(mlflow_store(tmp_path / "mlflow.db"))
     client = tracker.mlflow.MlflowClient()
     ident = tracker.experiment("exp")
     live = client.create_run(ident, tags={**a, "atdrone.generation": "1"}).info.run_id

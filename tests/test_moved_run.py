@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 from atdrone.models.checkpoint import read_header
@@ -25,8 +26,10 @@ TINY = {
 }
 
 
-def test_a_moved_run_directory_resumes_where_it_now_is(local_ray, tmp_path: Path) -> None:
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_a_moved_run_directory_resumes_where_it_now_is(
+    local_ray, tmp_path: Path, mlflow_store: Callable[[Path], str]
+) -> None:
+    uri = mlflow_store(tmp_path / "mlflow.db")
     first_home, second_home = tmp_path / "first", tmp_path / "second"
     cfg = load_experiment({**TINY, "out_dir": str(first_home)})
     first = run_experiment(cfg, tracking_uri=uri, progress=False, stop_after=1)

@@ -86,8 +86,8 @@ def _check_hola_generation(report, learner: str, others: list[str]) -> dict:
     return graph
 
 
-def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_hola_generations_fill_the_registry_and_mlflow(local_ray, tmp_path, mlflow_store):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     cfg = _cfg(tmp_path, "hola_t", algorithm="hola", generations=3, updates_per_generation=3, hola=HOLA)
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     reg = Registry(tmp_path / "hola_t" / "registry.db")
@@ -284,8 +284,8 @@ def test_the_coordinator_skips_a_zoo_evaluation_whose_checkpoint_is_missing(loca
         ray.kill(coordinator)
 
 
-def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path, mlflow_store):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     # the "w/o g" ablation: HOLA's generations with partners drawn uniformly from Pi minus N_t
     cfg = _cfg(tmp_path, "resume_t", algorithm="hola_no_g", generations=3, updates_per_generation=3, hola_no_g=HOLA)
     first = run_experiment(cfg, tracking_uri=uri, progress=False, stop_after=2)
@@ -324,8 +324,8 @@ def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path
     assert {"rho", "drawn"} <= set(second["population"].columns)
 
 
-def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_path, mlflow_store):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     cfg = _cfg(tmp_path, "pbt_t", algorithm="pbt", generations=2, pbt={"population_size": 2}, final_zoo="")
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     first, second = summary["reports"]
@@ -418,12 +418,12 @@ class FixedPartners(Algorithm):
         )
 
 
-def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path, monkeypatch):
+def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path, monkeypatch, mlflow_store):
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray ships this module's classes by value
     monkeypatch.setitem(ALGORITHMS, "fixed", FixedPartners)
     cfg = _cfg(tmp_path, "fixed_t", algorithm="fixed", generations=2, fixed={"member": "greedy"}, final_zoo="")
     assert cfg.algorithm_config() == FixedPartnersConfig(member="greedy")
-    summary = run_experiment(cfg, tracking_uri=f"sqlite:///{tmp_path}/mlflow.db", progress=False)
+    summary = run_experiment(cfg, tracking_uri=mlflow_store(tmp_path / "mlflow.db"), progress=False)
     first, second = summary["reports"]
     assert second.population == [first.learners[0], second.learners[0]]
     assert second.training[0].parent == first.learners[0]
@@ -463,7 +463,7 @@ def test_a_selection_zoo_sharing_drones_with_a_test_zoo_is_refused(tmp_path, zoo
     assert _cfg(tmp_path, "sel", algorithm="sp").select_zoo == "validation"
 
 
-def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path, monkeypatch):
+def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path, monkeypatch, mlflow_store):
     """A run whose test-zoo results are replaced by planted ones, each preferring another member: the best
     member and the MLflow champion are those of the (real) validation results every time."""
     real = driver._evaluate_population
@@ -482,7 +482,7 @@ def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path
     for k, favourite in enumerate(members):
         planted.clear()
         planted.update({m: (95.0 if m == favourite else 5.0) for m in members})
-        uri = f"sqlite:///{tmp_path}/mlflow{k}.db"
+        uri = mlflow_store(tmp_path / f"mlflow{k}.db")
         cfg = _cfg(tmp_path / str(k), "sel", algorithm="sp", generations=3, final_zoo="zoo3", final_episodes=16)
         summary = run_experiment(cfg, tracking_uri=uri, progress=False)
         population = pd.read_csv(tmp_path / str(k) / "sel" / "population.csv")

@@ -80,23 +80,25 @@ def _split_run_equals(tmp_path, doc: dict[str, Any], uri: str, rows: list[dict[s
 
 
 @pytest.mark.parametrize("algorithm", ["mappo", "naht_d_no_dec"])
-def test_mappo_and_the_ablation_train_against_the_pool(local_ray, tmp_path, algorithm):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_mappo_and_the_ablation_train_against_the_pool(local_ray, tmp_path, algorithm, mlflow_store):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     doc = _doc(tmp_path, f"{algorithm}_t", algorithm, generations=1)
     result = run_experiment(load_experiment(doc), tracking_uri=uri, progress=False)
     _check_pool_run(result, tmp_path / doc["name"], doc["name"], algorithm, uri)
 
 
-def test_naht_d_trains_against_the_pool_and_resumes_exactly(local_ray, tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_naht_d_trains_against_the_pool_and_resumes_exactly(local_ray, tmp_path, mlflow_store):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     doc = _doc(tmp_path, "naht_d_t", "naht_d")
     result = run_experiment(load_experiment(doc), tracking_uri=uri, progress=False)
     rows = _check_pool_run(result, tmp_path / "naht_d_t", "naht_d_t", "naht_d", uri)
     _split_run_equals(tmp_path, doc, uri, rows, tmp_path / "naht_d_t")
 
 
-def test_fcp_registers_its_frozen_pool_with_lineage_resumes_exactly_and_a_second_run_reuses_it(local_ray, tmp_path):
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
+def test_fcp_registers_its_frozen_pool_with_lineage_resumes_exactly_and_a_second_run_reuses_it(
+    local_ray, tmp_path, mlflow_store
+):
+    uri = mlflow_store(tmp_path / "mlflow.db")
     doc = _doc(tmp_path, "fcp_t", "fcp", fcp={"seeds": 2, "levels": 2})
     first = run_experiment(load_experiment(doc), tracking_uri=uri, progress=False)
     run_dir = tmp_path / "fcp_t"

@@ -38,6 +38,7 @@ Radio URIs fly real drones; ``simradio://``/``udp://`` URIs fly the simulated fl
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import math
 import os
@@ -304,9 +305,15 @@ class CflibBridge:
             self._sender.join(timeout=3)
             self._sender = None
         if self._swarm is not None:
-            for scf in self._swarm._cfs.values():
+            links = list(self._swarm._cfs.values())
+
+            def close_link(scf: Any) -> None:
                 with contextlib.suppress(Exception):  # a link that is already gone
                     scf.close_link()
+
+            # together: cflib waits up to 1 s for each link's receiving thread to end
+            with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, len(links))) as pool:
+                list(pool.map(close_link, links))
             self._swarm = None
 
     # ------------------------------------------------------------ state

@@ -53,11 +53,13 @@ from atdrone.deploy.shield import (
     ShieldConfig,
     ShieldDecision,
     ShieldInput,
+    ellipsoid_distance,
     geofence,
+    obstacle_distance,
     push_out_of_obstacles,
     shield,
 )
-from atdrone.deploy.transit import TransitBlocked, plan_transit, separated_spawn
+from atdrone.deploy.transit import Transit, TransitBlocked, plan_transit, separated_spawn
 from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge, spawn
 from atdrone.envs.evaders import EscapeParams
 from atdrone.envs.geometry import Geometry
@@ -69,6 +71,8 @@ OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
 LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
 ARRIVED = 0.05  # m: a transit is over when every drone is this close to its target
 SPAWN_DRAWS = 5  # spawn draws tried before a blocked transit ends the flight
+COLUMN_CLEAR = 0.45  # m: no drone in the air this near (in x, y) a landed one that takes off
+TRANSIT_MARGIN = 1.3  # separation ellipsoids between drones on a planned transit (plan_transit's default)
 AIRBORNE = ("taking_off", "flying", "landing")
 CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
 CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
@@ -395,6 +399,8 @@ class Flight:
                 return None
         landed = [n for n in self.names if self.state[n] == "landed"]
         if landed:
+            if not self._clear_columns(landed):
+                return None
             self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
             self._set_state(landed, "taking_off")
             # the drones in the air keep their setpoint stream (held where they are): without it the firmware
@@ -409,10 +415,8 @@ class Flight:
             self.hold_at[k], self.prev_setpoint[k] = np.nan, np.nan  # taken over from the planner
         if self.aborted:
             return None
+        start = self._at_height()
         flying = self._airborne()
-        pos, _, _ = self.measured()
-        start = np.where(np.isfinite(pos), pos, np.r_[0.0, 0.0, self.cfg.flight_height])
-        start[:, 2] = self.cfg.flight_height
         lo_hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
         blocked: TransitBlocked | None = None
         for draw in range(SPAWN_DRAWS):
@@ -427,28 +431,46 @@ class Flight:
             )
             end[:, :2] = np.clip(end[:, :2], *lo_hi)
             end[~flying] = start[~flying]
-            planning = self._worker.submit(
-                plan_transit,
-                start,
-                end,
-                self.cfg.goto_speed,
-                self.shield_cfg.drone_radius,
-                self.shield_cfg.drone_half_height,
-                bounds=lo_hi,
-                obstacles=self.obstacles,
-                clearance=self.shield_cfg.obstacle_clearance,
-            )
-            while not planning.done():  # the loop keeps ticking (and the heartbeat fed) while the plan is made
-                if not self._hold_tick():
-                    return None
             try:
-                plan = planning.result()
+                plan = self._plan(start, end)
                 break
             except TransitBlocked as exc:
                 blocked = exc
         else:
             self.aborted = f"transit blocked: {blocked} ({SPAWN_DRAWS} spawn draws)"
             return None
+        if plan is None or not self._fly_transit(plan, end, flying):
+            return None
+        return spawn_p, spawn_e
+
+    def _at_height(self) -> np.ndarray:
+        """Every drone's measured position (D, 3) at the flight height (the origin where it is not tracked)."""
+        pos, _, _ = self.measured()
+        start = np.where(np.isfinite(pos), pos, np.r_[0.0, 0.0, self.cfg.flight_height])
+        start[:, 2] = self.cfg.flight_height
+        return start
+
+    def _plan(self, start: np.ndarray, end: np.ndarray) -> Transit | None:
+        """A transit from ``start`` to ``end`` (raises :class:`TransitBlocked`), planned in the worker thread
+        while the loop keeps ticking (and the heartbeat fed); None when the flight was aborted meanwhile."""
+        planning = self._worker.submit(
+            plan_transit,
+            start,
+            end,
+            self.cfg.goto_speed,
+            self.shield_cfg.drone_radius,
+            self.shield_cfg.drone_half_height,
+            bounds=geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin),
+            obstacles=self.obstacles,
+            clearance=self.shield_cfg.obstacle_clearance,
+        )
+        while not planning.done():
+            if not self._hold_tick():
+                return None
+        return planning.result()
+
+    def _fly_transit(self, plan: Transit, end: np.ndarray, moving: np.ndarray) -> bool:
+        """Stream ``plan`` through the shield until the ``moving`` drones are at ``end``; False if aborted."""
         began = self.clock.now()
         deadline = began + plan.total + 5.0
         while self.clock.now() < deadline and not self.aborted:
@@ -460,11 +482,53 @@ class Flight:
             self._touchdown(pos)
             self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             done = np.hypot(*(pos[:, :2] - end[:, :2]).T) < ARRIVED
-            if tick - began >= plan.total and done[flying].all():
-                return spawn_p, spawn_e
+            if tick - began >= plan.total and done[moving].all():
+                return True
         if not self.aborted:
             self.aborted = "transit did not arrive in time"
-        return None
+        return False
+
+    def _clear_columns(self, landed: list[str]) -> bool:
+        """Fly the drones in the air off the columns the ``landed`` ones will take off through (a pursuer that
+        caught an evader drone hovers beside where it landed, or above it) on a planned transit; False (and the
+        flight ends) when that cannot be done."""
+        start = self._at_height()
+        flying = self._airborne()
+        ground = np.array([self.names.index(n) for n in landed])
+        r, h = self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height
+        lo, hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+        end = start.copy()
+        for i in np.flatnonzero(flying):
+            near = ground[np.hypot(*(start[ground, :2] - start[i, :2]).T) < COLUMN_CLEAR]
+            if not len(near):
+                continue
+            away = start[i, :2] - start[near, :2].mean(0)
+            heading = math.atan2(away[1], away[0]) if np.hypot(*away) > 1e-6 else 0.0
+            for k in (0, 1, -1, 2, -2, 3, -3, 4, -4, 5, -5, 6, -6, 7, -7, 8):  # straight away first
+                a = heading + k * np.pi / 8
+                target = start[near, :2].mean(0) + 1.1 * COLUMN_CLEAR * np.array([math.cos(a), math.sin(a)])
+                others = np.delete(end, i, axis=0)
+                clear = (
+                    (target >= lo).all()
+                    and (target <= hi).all()
+                    and (np.hypot(*(start[ground, :2] - target).T) >= COLUMN_CLEAR).all()
+                    and obstacle_distance(target[None], self.obstacles)[0] >= self.shield_cfg.obstacle_clearance
+                    and (ellipsoid_distance(others - np.r_[target, start[i, 2]], r, h) >= TRANSIT_MARGIN).all()
+                )
+                if clear:
+                    end[i, :2] = target
+                    break
+            else:
+                self.aborted = f"no room to take {self.names[int(near[0])]} off: {self.names[i]} hovers over it"
+                return False
+        if np.array_equal(end, start):
+            return True
+        try:
+            plan = self._plan(start, end)
+        except TransitBlocked as exc:
+            self.aborted = f"transit blocked clearing a takeoff: {exc}"
+            return False
+        return plan is not None and self._fly_transit(plan, end, flying)
 
     def _fly_episode(self) -> None:
         self.episode_done = False
