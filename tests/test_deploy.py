@@ -74,7 +74,9 @@ def fly(
     tmp_path: Path, registry_member: tuple[str, str], arm: bool = True, stop: StopRequest | None = None, **changes: Any
 ):
     cfg = load_deploy(sim_doc(tmp_path, registry_member, **changes))
-    return run_deploy(cfg, arm=arm, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}", say=lambda _: None, stop=stop)
+    result = run_deploy(cfg, arm=arm, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}", say=print, stop=stop)
+    print(f"ended early: {result.ended_early!r}")  # shown with a failure
+    return result
 
 
 def ticks(result: Any) -> pd.DataFrame:
@@ -525,9 +527,9 @@ def test_sigint_lands_everyone_and_ends_early(tmp_path: Path, registry_member: t
         result = run_deploy(cfg, arm=True, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}", say=say, stop=stop)
     finally:
         timer.cancel()
-    assert stop.signal == "SIGINT"
+    assert stop.signal == "SIGINT", result.ended_early
     frame = ticks(result)
-    assert frame.events.map(lambda e: "signal" in e).any()
+    assert frame.events.map(lambda e: "signal" in e).any(), result.ended_early
     assert set(end_states(frame).values()) == {"landed"}
     assert result.ended_early == "shield: signal"
 
