@@ -7,6 +7,7 @@ and what stopped its motors, when) and the preflight's findings.
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import signal
@@ -176,6 +177,9 @@ def test_a_registry_member_whose_file_changed_is_refused(tmp_path: Path) -> None
 
 
 # ---------------------------------------------------------------- a whole flight
+FROZEN: list[int] = []  # objects out of the collector's view at each planned transit (refusing_transits)
+
+
 def refusing_transits(monkeypatch: pytest.MonkeyPatch, refuse: Callable[[int], bool]) -> list[np.ndarray]:
     """Make the loop's transit planner refuse its ``n``-th call (from 0) where ``refuse(n)``; the targets of
     every call, in order."""
@@ -185,6 +189,7 @@ def refusing_transits(monkeypatch: pytest.MonkeyPatch, refuse: Callable[[int], b
     targets: list[np.ndarray] = []
 
     def planner(start: np.ndarray, end: np.ndarray, *args: Any, **kwargs: Any) -> Any:
+        FROZEN.append(gc.get_freeze_count())
         targets.append(np.array(end))
         if refuse(len(targets) - 1):
             raise TransitBlocked("refused by the test")
@@ -205,6 +210,9 @@ def test_sim_flight_of_4p2e1o_with_evader_drones(
     assert not result.ended_early and result.episodes_flown == 2
     frame = ticks(result)
     assert len(targets) == 3 and np.abs(targets[2] - targets[1]).max() > 0.1
+    # in flight the heap from before takeoff is frozen (a full collection of it stopped the loop for 0.3 s,
+    # past the stale-pose limit: "shield: all_stale"); afterwards it is handed back
+    assert len(FROZEN) >= 3 and min(FROZEN[-3:]) > 10_000 and gc.get_freeze_count() == 0
     redrawn = frame[frame.events.str.contains("spawn_redrawn")]
     assert set(redrawn.episode) == {1} and (redrawn.step < 0).all()
     cfg = load_deploy(sim_doc(tmp_path, registry_member))
