@@ -335,6 +335,10 @@ class Flight:
         # limit of the tests' doubled clock; in flight only objects made since are scanned
         gc.collect()
         gc.freeze()
+        # the pose stream's threads stood still through the collection: fresh poses before the first tick
+        fresh_by = self.clock.now() + 2.0
+        while self.clock.now() < fresh_by and not np.all(self.measured()[2] < self.shield_cfg.stale_pose / 2):
+            self.clock.sleep(0.02)
         try:
             self.bridge.start_heartbeat(lambda: self.stop.urgent)
             self._takeoff()
