@@ -60,7 +60,7 @@ from atdrone.deploy.shield import (
     push_out_of_obstacles,
     shield,
 )
-from atdrone.deploy.transit import Transit, TransitBlocked, plan_transit, separated_spawn
+from atdrone.deploy.transit import MARGIN, Transit, TransitBlocked, plan_transit, separated_spawn
 from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge, spawn
 from atdrone.envs.evaders import EscapeParams
 from atdrone.envs.geometry import Geometry
@@ -73,7 +73,6 @@ LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
 ARRIVED = 0.05  # m: a transit is over when every drone is this close to its target
 SPAWN_DRAWS = 5  # spawn draws tried before a blocked transit ends the flight
 COLUMN_CLEAR = 0.45  # m: no drone in the air this near (in x, y) a landed one that takes off
-TRANSIT_MARGIN = 1.3  # separation ellipsoids between drones on a planned transit (plan_transit's default)
 AIRBORNE = ("taking_off", "flying", "landing")
 CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
 CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
@@ -428,7 +427,7 @@ class Flight:
             return None
         start = self._at_height()
         flying = self._airborne()
-        lo_hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+        lo_hi = self._fence()
         blocked: TransitBlocked | None = None
         for draw in range(SPAWN_DRAWS):
             if draw:  # no transit to that draw: the task's spawn distribution, conditioned on a reachable one
@@ -454,6 +453,10 @@ class Flight:
             return None
         return spawn_p, spawn_e
 
+    def _fence(self) -> tuple[np.ndarray, np.ndarray]:
+        """The geofence's lower and upper (x, y) corners."""
+        return geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+
     def _at_height(self) -> np.ndarray:
         """Every drone's measured position (D, 3) at the flight height (the origin where it is not tracked)."""
         pos, _, _ = self.measured()
@@ -471,7 +474,7 @@ class Flight:
             self.cfg.goto_speed,
             self.shield_cfg.drone_radius,
             self.shield_cfg.drone_half_height,
-            bounds=geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin),
+            bounds=self._fence(),
             obstacles=self.obstacles,
             clearance=self.shield_cfg.obstacle_clearance,
         )
@@ -507,7 +510,7 @@ class Flight:
         flying = self._airborne()
         ground = np.array([self.names.index(n) for n in landed])
         r, h = self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height
-        lo, hi = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
+        lo, hi = self._fence()
         end = start.copy()
         for i in np.flatnonzero(flying):
             near = ground[np.hypot(*(start[ground, :2] - start[i, :2]).T) < COLUMN_CLEAR]
@@ -524,7 +527,7 @@ class Flight:
                     and (target <= hi).all()
                     and (np.hypot(*(start[ground, :2] - target).T) >= COLUMN_CLEAR).all()
                     and obstacle_distance(target[None], self.obstacles)[0] >= self.shield_cfg.obstacle_clearance
-                    and (ellipsoid_distance(others - np.r_[target, start[i, 2]], r, h) >= TRANSIT_MARGIN).all()
+                    and (ellipsoid_distance(others - np.r_[target, start[i, 2]], r, h) >= MARGIN).all()
                 )
                 if clear:
                     end[i, :2] = target

@@ -20,6 +20,8 @@ import numpy as np
 
 from atdrone.deploy.shield import Obstacles, ellipsoid_distance, obstacle_distance
 
+MARGIN = 1.3  # separation ellipsoids kept between drones on a planned transit
+
 
 class TransitBlocked(RuntimeError):
     """No conflict-free straight-line schedule exists for these starts and targets."""
@@ -116,7 +118,7 @@ def plan_transit(
     speed: float,
     radius: float,
     half_height: float,
-    margin: float = 1.3,
+    margin: float = MARGIN,
     delay_step: float = 0.5,
     max_delay: float = 20.0,
     sample: float = 0.1,
