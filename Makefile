@@ -38,7 +38,7 @@ docs: $(STAMP)
 	$(BIN)/mkdocs build --strict --quiet
 
 test: lint docs
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup
+	$(BIN)/python tests/run_suite.py
 
 # the quick HOLA-Drone V2 run on a local Ray, in runs/hola_quick (<= 10 min on 2 cores); run again, it
 # resumes an interrupted run or shows the finished one
