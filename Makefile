@@ -37,8 +37,11 @@ lint: $(STAMP)
 docs: $(STAMP)
 	$(BIN)/mkdocs build --strict --quiet
 
-test: lint docs
-	$(BIN)/python tests/run_suite.py
+# the type check runs beside the test sessions (half a minute of one core from a fresh clone)
+test: docs
+	$(BIN)/ruff check atdrone tests benchmarks jobs
+	$(BIN)/ruff format --check atdrone tests benchmarks jobs
+	$(BIN)/python tests/run_suite.py --beside $(BIN)/mypy
 
 # the quick HOLA-Drone V2 run on a local Ray, in runs/hola_quick (<= 10 min on 2 cores); run again, it
 # resumes an interrupted run or shows the finished one
