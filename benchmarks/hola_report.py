@@ -291,6 +291,7 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
                 for doc in sorted(gens.glob("*/hypergraph.json")) if gens.exists() else []:
                     graph = json.loads(doc.read_text())
                     rho = np.array(list(graph["rho"].values()))
+                    null = graph.get("null", {})  # rho of random weights on the same hyperedges (older runs: none)
                     rows.append(
                         {
                             "task": task,
@@ -304,10 +305,9 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
                             / max(graph["resolution"]["return"]["nodes"], 1),
                             "contested_SUC": graph["resolution"]["SUC"]["contested_nodes"]
                             / max(graph["resolution"]["SUC"]["nodes"], 1),
-                            # rho of random weights on the same hyperedges (NaN for runs without a null)
-                            "null_entropy": graph.get("null", {}).get("entropy", float("nan")),
-                            "null_entropy_sd": graph.get("null", {}).get("entropy_sd", float("nan")),
-                            "null_max_rho": graph.get("null", {}).get("max_rho", float("nan")),
+                            "null_entropy": null.get("entropy", float("nan")),
+                            "null_entropy_sd": null.get("entropy_sd", float("nan")),
+                            "null_max_rho": null.get("max_rho", float("nan")),
                         }
                     )
     return pd.DataFrame(rows)
@@ -316,10 +316,12 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
 def report(args: argparse.Namespace) -> None:
     evals = []
     budget_rows = []
+    profile_rows: list[dict[str, Any]] = []
     for path in sorted((Path(args.out) / "eval").glob("*.json")):
         doc = json.loads(path.read_text())
         for row in doc["rows"]:
             evals.append({"task": doc["task"], "seed": doc["seed"], **row})
+        profile_rows += [{"task": doc["task"], "seed": doc["seed"], **row} for row in doc.get("profiles", [])]
         # evaluations written before compute was recorded have none: left out, shown as '-'
         spent = {
             k: sum(r[k] for r in doc["rows"])
@@ -331,12 +333,6 @@ def report(args: argparse.Namespace) -> None:
         print("[report] nothing evaluated yet")
         return
     frame = pd.DataFrame(evals)
-    profile_rows = [
-        {"task": d["task"], "seed": d["seed"], **row}
-        for path in sorted((Path(args.out) / "eval").glob("*.json"))
-        for d in [json.loads(path.read_text())]
-        for row in d.get("profiles", [])
-    ]
     lines = [f"# {args.title}: {', '.join(args.tasks)}", ""]
     lines.append(
         f"Evaluation: {args.episodes} episodes per run and zoo; mean +- std (ddof 1) over seeds "
