@@ -30,7 +30,7 @@ from atdrone.deploy.shield import geofence
 
 ROOT = Path(__file__).resolve().parent.parent
 CHECKPOINT = ROOT / "configs" / "zoos" / "checkpoints" / "sp_high.pt"
-RATE = 2.0
+RATE = 1.5  # the simulated clock's speed: a host's pause costs the drones 1.5x its length
 TOC_CACHE = Path(tempfile.gettempdir()) / "atdrone-test-toc"
 AIRBORNE = ("taking_off", "flying", "landing")
 
@@ -89,8 +89,18 @@ def end_states(frame: pd.DataFrame) -> dict[str, str]:
     return physical.groupby("drone")["state"].last().to_dict()
 
 
-def min_scaled_separation(frame: pd.DataFrame, radius: float = 0.125, half_height: float = 0.375) -> float:
-    """The smallest scaled ellipsoid distance between two airborne drones at one tick (< 1: they touched)."""
+class Closest(float):
+    """A scaled separation that says, when an assertion shows it, where it happened."""
+
+    where: str
+
+    def __repr__(self) -> str:
+        return f"{float(self)!r} ({self.where})"
+
+
+def min_scaled_separation(frame: pd.DataFrame, radius: float = 0.125, half_height: float = 0.375) -> Closest:
+    """The smallest scaled ellipsoid distance between two airborne drones at one tick (< 1: they touched),
+    with the tick, the pair, their states and the shield's events around it for a failure's message."""
     air = frame[frame.state.isin(AIRBORNE)]
     grid = air.groupby(["t", "drone"])[["x", "y", "z"]].first().unstack("drone")
     names = list(grid["x"].columns)
@@ -98,7 +108,14 @@ def min_scaled_separation(frame: pd.DataFrame, radius: float = 0.125, half_heigh
     delta = (pos[:, :, None] - pos[:, None]) / np.array([2 * radius, 2 * radius, 2 * half_height])
     scaled = np.sqrt((delta**2).sum(-1))
     scaled[:, np.arange(len(names)), np.arange(len(names))] = np.inf
-    return float(np.nanmin(np.where(np.isfinite(scaled), scaled, np.inf)))
+    scaled = np.where(np.isfinite(scaled), scaled, np.inf)
+    k, a, b = np.unravel_index(int(np.argmin(scaled)), scaled.shape)
+    t = float(grid.index[k])
+    pair = frame[frame.drone.isin([names[a], names[b]]) & frame.t.between(t - 1.0, t + 0.2)]
+    cols = ["t", "step", "drone", "state", "x", "y", "z", "setpoint_x", "setpoint_y", "events", "latency_tick"]
+    out = Closest(scaled[k, a, b])
+    out.where = f"t={t:.2f}, {names[a]}-{names[b]}; the second before:\n{pair[cols].to_string()}"
+    return out
 
 
 def stops(result: Any, why: str) -> dict[str, float]:
