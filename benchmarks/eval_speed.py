@@ -12,6 +12,7 @@ episodes/s of both, the ratio this / reference, and both trees' metrics with the
 spread over seeds and a z-score of the difference (issue 26: evaluation that stops
 at the end, at least 2x faster, metrics within noise).
 Usage: python benchmarks/eval_speed.py --reference /tmp/ref-b1d060d [--rounds 5] [--zoos zoo1 zoo2]
+(issue 26's run: OMP_NUM_THREADS=1, so that zoo2's networks do not fight for a busy machine's two cores).
 """
 
 from __future__ import annotations
@@ -179,6 +180,7 @@ def main() -> None:
         "zoos": compare(ref, args.task, args.zoos, args.episodes, args.seed, args.rounds),
         "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
         "cpus": os.cpu_count(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),  # torch's threads in both trees' subprocesses
         "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
     }
     print(json.dumps(result, indent=2))
