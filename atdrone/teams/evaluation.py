@@ -178,7 +178,7 @@ def run_episodes(
     rec = {k: np.zeros(episodes, dtype=t) for k, t in _FIELDS.items()}
     teams = np.empty(episodes, dtype=object)
     while core.num_envs:
-        playing = core.state.episode
+        playing = core.state.episode.copy()  # the episode each row plays this step
         batch = match.learner_batch()
         actions = learner.act(batch).reshape(core.num_envs, match.num_ctrl)
         _, _, dones, info = match.step(actions)
