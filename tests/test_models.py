@@ -22,7 +22,7 @@ from atdrone.models.checkpoint import MAGIC, load_checkpoint, read_header, save_
 from atdrone.models.history import ObsHistory, StatelessMemory
 from atdrone.models.networks import ActorCritic, NetConfig
 from atdrone.policies.base import PolicyError
-from atdrone.policies.neural import NeuralPolicy, load_policy
+from atdrone.policies.neural import PAD_ROWS, NeuralPolicy, load_policy
 
 ZOO = Path(__file__).resolve().parents[1] / "configs" / "zoos" / "checkpoints"
 D = 24  # 4p2e observation width: 4 features x (2 evaders + 1 obstacle + 3 teammates)
@@ -88,8 +88,11 @@ def _observations(n: int, seed: int = 0) -> np.ndarray:
 
 
 def _actions(model: PolicyModel, obs: np.ndarray, num_e: int = 2) -> np.ndarray:
+    """The network's mean actions on ``obs``, run on a batch padded as NeuralPolicy pads it (the same rounding)."""
+    padded = np.zeros((-len(obs) // PAD_ROWS * -PAD_ROWS, obs.shape[1]), obs.dtype)
+    padded[: len(obs)] = obs
     with torch.no_grad():
-        return torch.tanh(model.dist(torch.from_numpy(obs), num_e).mean).numpy()
+        return torch.tanh(model.dist(torch.from_numpy(padded), num_e).mean).numpy()[: len(obs)]
 
 
 def test_a_new_architecture_plugs_in_through_the_table(tmp_path, monkeypatch):

@@ -48,12 +48,11 @@ def test_rendering_leaves_the_simulator_unchanged():
     obs = core.reset()
     for _ in range(5):
         obs, *_ = core.step(chase_nearest(obs, core.num_e))
-    before = core.state.copy()
-    rng_before = core.rng.bit_generator.state
+    before, next_episode = core.state.copy(), core.next_episode
     render_frame(core, 0)
     for key, value in before.__dict__.items():
         np.testing.assert_array_equal(getattr(core.state, key), value, err_msg=key)
-    assert core.rng.bit_generator.state == rng_before
+    assert core.next_episode == next_episode  # no episode started (its draws come from its key)
 
 
 def test_render_frame_draws_a_given_state_not_the_current_one():
@@ -188,23 +187,23 @@ def test_frame_steps_show_the_whole_episode():
 
 def test_the_representative_episode_has_the_usual_outcome_and_a_median_length():
     zoo = load_zoo("zoo2")
-    played = [play_episode("4p2e1o", s, GreedyPolicy(), partners=zoo).summary for s in range(5)]
-    # greedy learners with the Zoo 2 drones, seeds 0-4: one collision, then four captures
+    played = [play_episode("4p2e1o", s, GreedyPolicy(), partners=zoo).summary for s in range(8, 13)]
+    # greedy learners with the Zoo 2 drones, seeds 8-12: one collision, then four captures
     assert [(p["outcome"], p["steps"]) for p in played] == [
-        ("collision", 662),
-        ("captured", 384),
-        ("captured", 227),
-        ("captured", 448),
-        ("captured", 231),
+        ("collision", 37),
+        ("captured", 388),
+        ("captured", 192),
+        ("captured", 176),
+        ("captured", 242),
     ]
-    chosen = representative_episode("4p2e1o", GreedyPolicy(), zoo, seed=0, tries=5).summary
-    # captured is the usual outcome (4 of 5); of 227, 231, 384, 448 steps the lower median is seed 4's 231,
-    # not the first capture (seed 1) nor the quickest (seed 2)
-    assert (chosen["seed"], chosen["steps"]) == (4, 231)
+    chosen = representative_episode("4p2e1o", GreedyPolicy(), zoo, seed=8, tries=5).summary
+    # captured is the usual outcome (4 of 5); of 176, 192, 242, 388 steps the lower median is seed 10's 192,
+    # not the first capture (seed 9) nor the quickest (seed 11)
+    assert (chosen["seed"], chosen["steps"]) == (10, 192)
     assert chosen["typical"] == "4 of 5 seeds ended captured"
-    # a tie goes to the earlier seed's outcome: with seeds 0 and 1 the collision is shown, not the capture
-    tie = representative_episode("4p2e1o", GreedyPolicy(), zoo, seed=0, tries=2).summary
-    assert (tie["seed"], tie["outcome"], tie["typical"]) == (0, "collision", "1 of 2 seeds ended collision")
+    # a tie goes to the earlier seed's outcome: with seeds 8 and 9 the collision is shown, not the capture
+    tie = representative_episode("4p2e1o", GreedyPolicy(), zoo, seed=8, tries=2).summary
+    assert (tie["seed"], tie["outcome"], tie["typical"]) == (8, "collision", "1 of 2 seeds ended collision")
 
 
 def test_showcase_gif_plays_the_member_with_zoo_partners_and_captions_the_whole_episode(tmp_path):

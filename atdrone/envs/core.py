@@ -43,9 +43,16 @@ Episode End
     hit_obstacle (B, P) the index into ``geometry.names`` of the obstacle or wall a
     pursuer hit (-1: none).
 
+Randomness
+    Every episode has a number (its place in the core's sequence of episodes: 0, 1, ...
+    from a reset with a seed, continuing through auto-resets in row order) and a key,
+    a hash of the seed and that number (``state.key``). Its spawn and its evaders'
+    wandering are counter-based draws from its key and step (:mod:`atdrone.envs.streams`),
+    so an episode plays the same whichever row it runs in and whatever the other rows do.
+
 Arguments
-    task: a TaskConfig, task name or path; num_envs; seed for the numpy Generator
-    that drives every random draw (spawns and evader wandering).
+    task: a TaskConfig, task name or path; num_envs; seed of the episode keys (None:
+    fresh entropy).
 """
 
 from __future__ import annotations
@@ -77,6 +84,7 @@ from atdrone.envs.observation import (
     obs_dim,
     observe,
 )
+from atdrone.envs.streams import SPAWN_DRAWS, RowStream, episode_keys, fold, root_key
 
 RUNNING, CAPTURED, COLLISION, TIMEOUT = 0, 1, 2, 3
 DONE_REASONS = ("running", "captured", "collision", "timeout")
@@ -88,7 +96,8 @@ class PursuitState:
 
     pos (B, N, 2) metres; heading (B, N) radians; captured (B, E); t (B,) steps;
     ep_return (B,); ep_collided (B,); wander_heading (B, E); wander_left (B, E) steps;
-    prev_dist (B, E) nearest-pursuer distance of each evader after the last step.
+    prev_dist (B, E) nearest-pursuer distance of each evader after the last step;
+    episode (B,) the number of each row's episode and key (B,) uint64 its random key.
     """
 
     pos: np.ndarray
@@ -100,37 +109,42 @@ class PursuitState:
     wander_heading: np.ndarray
     wander_left: np.ndarray
     prev_dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    episode: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint64))
 
     def copy(self) -> PursuitState:
         return PursuitState(**{k: v.copy() for k, v in self.__dict__.items()})
 
 
-def spawn(cfg: TaskConfig, rng: np.random.Generator, n: int, max_tries: int = 100) -> tuple[np.ndarray, np.ndarray]:
+def spawn(
+    cfg: TaskConfig, rng: np.random.Generator | RowStream, n: int, max_tries: int = 100
+) -> tuple[np.ndarray, np.ndarray]:
     """Start positions (n, N, 2) and headings (n, N) of n environments.
 
     The pursuers' x ranges overlap (U(0.2, 1.2) + 0.6 i), so an environment whose
-    pursuers would start closer than collision_distance redraws its pursuers.
+    pursuers would start closer than collision_distance redraws its pursuers (from a
+    stream of its own when ``rng`` is a RowStream, so each row's spawn is its key's).
     """
     pl = cfg.players
     rp, re = pl.respawn_region.pursuer, pl.respawn_region.evader
 
-    def draw(lo_hi: tuple[float, float], shape: tuple[int, ...]) -> np.ndarray:
+    def draw(g: np.random.Generator | RowStream, lo_hi: tuple[float, float], shape: tuple[int, int]) -> np.ndarray:
         if pl.random_respawn:
-            return rng.uniform(lo_hi[0], lo_hi[1], size=shape)
+            return g.uniform(lo_hi[0], lo_hi[1], size=shape)
         return np.full(shape, (lo_hi[0] + lo_hi[1]) / 2)
 
-    def pursuers(m: int) -> tuple[np.ndarray, np.ndarray]:
-        return draw(rp.x, (m, pl.num_p)) + rp.x_step * np.arange(pl.num_p), draw(rp.y, (m, pl.num_p))
+    def pursuers(g: np.random.Generator | RowStream, m: int) -> tuple[np.ndarray, np.ndarray]:
+        return draw(g, rp.x, (m, pl.num_p)) + rp.x_step * np.arange(pl.num_p), draw(g, rp.y, (m, pl.num_p))
 
-    px, py = pursuers(n)
+    px, py = pursuers(rng, n)
     i, j = np.triu_indices(pl.num_p, 1)
     for _ in range(max_tries):
         close = (np.hypot(px[:, i] - px[:, j], py[:, i] - py[:, j]) < cfg.task.collision_distance).any(-1)
         if not close.any():
             break
-        px[close], py[close] = pursuers(int(close.sum()))
-    ex = draw(re.x, (n, 1)) + re.x_step * np.arange(pl.num_e)
-    ey = draw(re.y, (n, pl.num_e))
+        px[close], py[close] = pursuers(rng.rows(close) if isinstance(rng, RowStream) else rng, int(close.sum()))
+    ex = draw(rng, re.x, (n, 1)) + re.x_step * np.arange(pl.num_e)
+    ey = draw(rng, re.y, (n, pl.num_e))
     pos = np.stack([np.concatenate([px, ex], 1), np.concatenate([py, ey], 1)], -1)
     return pos, np.full((n, pl.num_p + pl.num_e), np.pi / 2)
 
@@ -161,12 +175,13 @@ def evader_step(
     wander_left: np.ndarray,
     cfg: TaskConfig,
     escape: EscapeParams,
-    rng: np.random.Generator,
+    rng: np.random.Generator | RowStream,
     geometry: Geometry | None = None,
 ) -> EvaderMove:
     """One step of the escape policy (SPEC section 3) for evaders at ``pos_e`` fleeing pursuers at ``pos_p``.
 
-    Calm evaders wander, holding a heading drawn from ``rng`` for 10-15 steps; the
+    Calm evaders wander, holding a heading drawn from ``rng`` (a Generator, or one
+    RowStream row per environment) for 10-15 steps; the
     others flee. Captured evaders stay put. The simulator and the deploy loop (virtual
     evaders, or setpoints for evader drones) both call this.
     """
@@ -251,16 +266,21 @@ class BatchedPursuit:
         self.arena = Arena.from_config(self.cfg)
         self.geometry: Geometry = self.arena.geometry
         self.escape = EscapeParams()
-        self.rng = np.random.default_rng(seed)
+        self.root = root_key(seed)  # the episode keys' root
+        self.next_episode = 0  # the number of the next episode a reset or an auto-reset starts
         self.pairs = np.stack(np.triu_indices(self.num_p, 1), 1)  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
-        self.state = self._fresh_state(self.num_envs)
+        self.state = self._fresh_state(np.arange(self.num_envs))  # what reset() starts
         self._obs: np.ndarray | None = None
         # the whole batch just before the last auto-reset (to show how episodes ended)
         self.final_state: PursuitState | None = None
 
     # ------------------------------------------------------------------ state
-    def _fresh_state(self, n: int) -> PursuitState:
-        pos, heading = spawn(self.cfg, self.rng, n)
+    def _fresh_state(self, episodes: np.ndarray) -> PursuitState:
+        """The start of episodes numbered ``episodes`` (n,): spawn and wander clocks from their keys."""
+        n = len(episodes)
+        keys = episode_keys(self.root, episodes)
+        draws = RowStream(fold(keys, SPAWN_DRAWS))
+        pos, heading = spawn(self.cfg, draws, n)
         e = self.num_e
         lo, hi = self.escape.wander_steps
         state = PursuitState(
@@ -271,10 +291,22 @@ class BatchedPursuit:
             ep_return=np.zeros(n),
             ep_collided=np.zeros(n, dtype=bool),
             wander_heading=heading[:, self.num_p :].copy(),
-            wander_left=self.rng.integers(lo, hi + 1, size=(n, e)),
+            wander_left=draws.integers(lo, hi + 1, size=(n, e)),
+            episode=np.asarray(episodes, dtype=np.int64),
+            key=keys,
         )
         state.prev_dist = self._evader_distances(state.pos)
         return state
+
+    def _take(self, n: int) -> np.ndarray:
+        """The numbers of the next n episodes."""
+        episodes = np.arange(self.next_episode, self.next_episode + n)
+        self.next_episode += n
+        return episodes
+
+    def step_keys(self) -> np.ndarray:
+        """(B,) keys of each row's current step: its episode key folded with the step number."""
+        return fold(self.state.key, self.state.t)
 
     def _evader_distances(self, pos: np.ndarray) -> np.ndarray:
         """Nearest-pursuer distance of each evader, (B, E)."""
@@ -288,13 +320,33 @@ class BatchedPursuit:
     def evader_pos(self) -> np.ndarray:
         return self.state.pos[:, self.num_p :]
 
-    def reset(self, seed: int | None = None) -> np.ndarray:
-        """Reset every environment; reseed first when ``seed`` is given."""
+    def reset(self, seed: int | None = None, episodes: np.ndarray | None = None) -> np.ndarray:
+        """Reset every environment to the next episodes; with ``seed``, reseed and start from episode 0.
+
+        ``episodes`` (B,): play these episode numbers instead (later auto-resets go on
+        after the highest).
+        """
         if seed is not None:
-            self.rng = np.random.default_rng(seed)
-        self.state = self._fresh_state(self.num_envs)
+            self.root, self.next_episode = root_key(seed), 0
+        if episodes is None:
+            episodes = self._take(self.num_envs)
+        else:
+            episodes = np.asarray(episodes, dtype=np.int64)
+            if episodes.shape != (self.num_envs,):
+                raise ValueError(f"episodes must have shape {(self.num_envs,)}, got {episodes.shape}")
+            self.next_episode = int(episodes.max()) + 1
+        self.state = self._fresh_state(episodes)
         self._obs = self.observe()
         return self._obs
+
+    def keep(self, rows: np.ndarray) -> None:
+        """Drop every environment but ``rows`` (indices, in the order kept): the batch shrinks to them."""
+        rows = np.asarray(rows, dtype=np.intp)
+        self.state = PursuitState(**{k: v[rows] for k, v in self.state.__dict__.items()})
+        self.num_envs = len(rows)
+        if self._obs is not None:
+            self._obs = self._obs[rows]
+        self.final_state = None
 
     # ------------------------------------------------------------ observation
     def poses(self, state: PursuitState | None = None) -> Poses:
@@ -336,7 +388,7 @@ class BatchedPursuit:
             s.wander_left,
             self.cfg,
             self.escape,
-            self.rng,
+            RowStream(self.step_keys()),
             self.geometry,
         )
         active = ~s.captured
@@ -384,6 +436,8 @@ class BatchedPursuit:
             wander_heading=wander_heading,
             wander_left=wander_left,
             prev_dist=np.where(captured, 0.0, dist_pe),
+            episode=s.episode.copy(),
+            key=s.key.copy(),
         )
         obs = self.observe(obstacles=p_obst)
         info: dict[str, Any] = {
@@ -410,6 +464,6 @@ class BatchedPursuit:
         return PursuitState(**{k: v[mask] for k, v in self.state.__dict__.items()})
 
     def _reset_envs(self, idx: np.ndarray) -> None:
-        fresh = self._fresh_state(len(idx))
+        fresh = self._fresh_state(self._take(len(idx)))
         for k, v in fresh.__dict__.items():
             getattr(self.state, k)[idx] = v

@@ -31,13 +31,16 @@ class DroneBatch:
     obs (M, obs_dim) their observations; env (M,) and slot (M,) the environment row
     and pursuer slot of each (the keys of per-drone memory, and rows into ``poses``);
     poses: the poses of every drone of those environments, for policies that read
-    positions rather than observations (None: observations only).
+    positions rather than observations (None: observations only); keys (M,) uint64:
+    each drone's random key for this step (from its episode, step and slot), for
+    policies that sample (None: they use a generator of their own).
     """
 
     obs: np.ndarray
     env: np.ndarray
     slot: np.ndarray
     poses: Poses | None = None
+    keys: np.ndarray | None = None
 
     @classmethod
     def all_slots(cls, obs: np.ndarray, poses: Poses | None = None, slots: np.ndarray | None = None) -> DroneBatch:

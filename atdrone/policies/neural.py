@@ -12,10 +12,16 @@ import numpy as np
 import torch
 
 from atdrone.envs.core import ENTITY_FEATURES
+from atdrone.envs.streams import normal
 from atdrone.models.architectures import PolicyModel
 from atdrone.models.checkpoint import load_checkpoint
 from atdrone.models.history import DroneMemory
 from atdrone.policies.base import DroneBatch, PolicyError
+
+# The network runs on batches padded to a multiple of this many rows: BLAS kernels round
+# the rows of a batch's ragged tail (and of batches of 1-3 rows) differently, so a
+# drone's action would otherwise depend on how many drones shared its batch.
+PAD_ROWS = 64
 
 
 class NeuralPolicy:
@@ -85,24 +91,40 @@ class NeuralPolicy:
         return self.inputs_of(batch.obs, batch.env, batch.slot)
 
     @torch.no_grad()
-    def act_obs(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray) -> np.ndarray:
-        """Actions (M,) in [-1, 1] for observations (M, D) of drones with memory keys (env (M,), key (M,))."""
-        if len(obs) == 0:
+    def act_obs(
+        self, obs: np.ndarray, env: np.ndarray, key: np.ndarray, noise_keys: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Actions (M,) in [-1, 1] for observations (M, D) of drones with memory keys (env (M,), key (M,)).
+
+        When sampling, the noise comes from ``noise_keys`` (M,) (one counter-based draw per
+        drone) if given, else from the policy's generator.
+        """
+        M = len(obs)
+        if M == 0:
             return np.zeros(0)
         env, key = np.asarray(env), np.asarray(key)
-        dist = self.model.dist(torch.from_numpy(self.inputs_of(obs, env, key)), self.evaders(obs.shape[-1]))
-        u = dist.mean
-        self.last_dist = (dist.mean.numpy().astype(np.float64), dist.stddev.numpy().astype(np.float64))
+        inputs = self.inputs_of(obs, env, key)
+        padded = np.zeros((-M // PAD_ROWS * -PAD_ROWS, inputs.shape[1]), inputs.dtype)
+        padded[:M] = inputs
+        dist = self.model.dist(torch.from_numpy(padded), self.evaders(obs.shape[-1]))
+        mean, std = dist.mean, dist.stddev
+        self.last_dist = (mean[:M].numpy().astype(np.float64), std[:M].numpy().astype(np.float64))
+        u = mean
         if not self.deterministic:
-            u = u + dist.stddev * torch.randn(u.shape, generator=self.generator)
-        actions = torch.tanh(u).numpy().astype(np.float64)
+            eps = torch.zeros_like(u)
+            if noise_keys is None:
+                eps[:M] = torch.randn((M, *u.shape[1:]), generator=self.generator)
+            else:
+                eps[:M] = torch.from_numpy(normal(noise_keys)).to(u.dtype).reshape(M, *u.shape[1:])
+            u = u + std * eps
+        actions = torch.tanh(u)[:M].numpy().astype(np.float64)
         assert self.memory is not None  # made by inputs_of
         self.memory.record(obs, env, key, actions)
         return actions
 
     def act(self, batch: DroneBatch) -> np.ndarray:
-        """Actions (M,) for the drones of ``batch``: its observations, keyed by (env, slot)."""
-        return self.act_obs(batch.obs, batch.env, batch.slot)
+        """Actions (M,) for the drones of ``batch``: its observations, keyed by (env, slot); noise from its keys."""
+        return self.act_obs(batch.obs, batch.env, batch.slot, batch.keys)
 
 
 def load_policy(path: str | Path, deterministic: bool = True) -> NeuralPolicy:

@@ -1,8 +1,13 @@
 """The AT-Drone evaluation protocol (paper section 3.3, SPEC section 9).
 
-A learner fills the num_ctrl learner slots, a zoo fills the rest, and N episodes run
-in parallel on BatchedPursuit, one episode per environment (so short episodes are not
-over-counted). From the raw episode records:
+A learner fills the num_ctrl learner slots, a zoo fills the rest, and N episodes,
+numbered 0..N-1, run in parallel on BatchedPursuit (so short episodes are not
+over-counted): up to ``max_envs`` at a time, a row that finishes starts the next
+episode not yet started, and once every episode has started, finished rows leave the
+batch, so N episodes cost about the sum of their lengths in environment steps. An
+episode's draws (spawn, evader wandering, team, sampled actions) come from its own
+key, so its record depends on the seed and its number only, not on the batch it ran
+in. From the raw episode records:
   SUC  % of episodes in which every evader was captured;
   COL  % of episodes with a collision (drone-drone or drone-obstacle);
   AST  mean length in steps of the successful episodes (NaN when none succeeded);
@@ -157,56 +162,51 @@ def run_episodes(
     on_progress: Callable[[int], None] | None = None,
     sampler: PartnerSampler | None = None,
 ) -> pd.DataFrame:
-    """Play ``episodes`` episodes of ``learner`` with ``partners``; one record per episode.
+    """Play episodes 0..``episodes``-1 of ``learner`` with ``partners``; one record per episode, in episode order.
 
     ``sampler`` picks the partner members of each episode (default: uniformly per slot).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     cfg = load_task(task)
-    chunks = []
-    for c, start in enumerate(range(0, episodes, max_envs)):
-        n = min(max_envs, episodes - start)
-        core = BatchedPursuit(cfg, num_envs=n, seed=_derive(seed, c, 0))
-        match = Match(core, partners, seed=_derive(seed, c, 1), sampler=sampler)
-        match.reset()
-        learner.reset(np.ones(n, dtype=bool))
-        finished = np.zeros(n, dtype=bool)
-        rec = {k: np.zeros(n, dtype=t) for k, t in _FIELDS.items()}
-        teams = np.empty(n, dtype=object)
-        for _ in range(cfg.task.task_horizon + 1):
-            batch = match.learner_batch()
-            actions = learner.act(batch).reshape(n, match.num_ctrl)
-            _, _, dones, info = match.step(actions)
-            learner.reset(dones)
-            new = dones & ~finished
-            if new.any():
-                idx = np.flatnonzero(new)
-                rec["reason"][idx] = info["done_reason"][idx]
-                rec["length"][idx] = info["episode_length"][idx]
-                rec["return"][idx] = info["episode_return"][idx]
-                rec["collided"][idx] = info["episode_collided"][idx]
-                rec["captured"][idx] = info["episode_captured"][idx]
-                for i in idx:
-                    members = info["team"]["partner_members"][i]
-                    teams[i] = ",".join(match.partner_names[m] for m in members)
-                slots = info["team"]["learner_slots"][idx]
-                rec["learner_slots"][idx] = [",".join(map(str, s)) for s in slots]
-                hit = info["collided"][idx]  # (n, P) pursuers in this step's collision
-                rec["learner_crashed"][idx] = np.take_along_axis(hit, slots, axis=1).any(1)
-                partner_slots = info["team"]["partner_slots"][idx]
-                rec["partner_crashed"][idx] = np.take_along_axis(hit, partner_slots, axis=1).any(1)
-                rec["crash"][idx] = crash_kinds(info, idx, slots, core.pairs)
-                finished |= new
-                if on_progress is not None:
-                    on_progress(len(idx))
-            if finished.all():
-                break
-        frame = pd.DataFrame(rec)
-        frame.insert(0, "episode", np.arange(start, start + n))
-        frame["partners"] = teams
-        chunks.append(frame)
-    out = pd.concat(chunks, ignore_index=True)
+    n = min(episodes, max_envs)
+    core_seed, match_seed = episode_seeds(seed)
+    core = BatchedPursuit(cfg, num_envs=n, seed=core_seed)
+    match = Match(core, partners, seed=match_seed, sampler=sampler)
+    match.reset()  # episodes 0..n-1; a row that ends starts the next one
+    learner.reset(np.ones(n, dtype=bool))
+    rec = {k: np.zeros(episodes, dtype=t) for k, t in _FIELDS.items()}
+    teams = np.empty(episodes, dtype=object)
+    while core.num_envs:
+        playing = core.state.episode.copy()  # the episode each row plays this step
+        batch = match.learner_batch()
+        actions = learner.act(batch).reshape(core.num_envs, match.num_ctrl)
+        _, _, dones, info = match.step(actions)
+        if not dones.any():
+            continue
+        learner.reset(match.by_seat(dones))
+        idx = np.flatnonzero(dones)
+        ep = playing[idx]
+        rec["reason"][ep] = info["done_reason"][idx]
+        rec["length"][ep] = info["episode_length"][idx]
+        rec["return"][ep] = info["episode_return"][idx]
+        rec["collided"][ep] = info["episode_collided"][idx]
+        rec["captured"][ep] = info["episode_captured"][idx]
+        team = info["team"]
+        teams[ep] = [",".join(match.partner_names[m] for m in members) for members in team["partner_members"][idx]]
+        slots = team["learner_slots"][idx]
+        rec["learner_slots"][ep] = [",".join(map(str, s)) for s in slots]
+        hit = info["collided"][idx]  # (n, P) pursuers in this step's collision
+        rec["learner_crashed"][ep] = np.take_along_axis(hit, slots, axis=1).any(1)
+        rec["partner_crashed"][ep] = np.take_along_axis(hit, team["partner_slots"][idx], axis=1).any(1)
+        rec["crash"][ep] = crash_kinds(info, idx, slots, core.pairs)
+        if on_progress is not None:
+            on_progress(len(idx))
+        if core.next_episode > episodes:  # the rows that ended started episodes past the last: they leave
+            match.keep(np.flatnonzero(core.state.episode < episodes))
+    out = pd.DataFrame(rec)
+    out.insert(0, "episode", np.arange(episodes))
+    out["partners"] = teams
     out["success"] = out["reason"] == CAPTURED
     out["outcome"] = np.array(DONE_REASONS)[out["reason"].to_numpy()]
     out.insert(1, "seed", seed)
@@ -226,9 +226,10 @@ _FIELDS = {
 }
 
 
-def _derive(seed: int, chunk: int, stream: int) -> int:
-    """A distinct, reproducible seed per (seed, chunk, stream)."""
-    return int(np.random.SeedSequence([seed, chunk, stream]).generate_state(1)[0])
+def episode_seeds(seed: int) -> tuple[int, int]:
+    """The core's and the Match's seeds of evaluation seed ``seed`` (its episodes' keys and teams)."""
+    core, match = np.random.SeedSequence(seed).generate_state(2)
+    return int(core), int(match)
 
 
 def evaluate(

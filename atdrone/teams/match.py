@@ -9,6 +9,13 @@ exposes the learners' slots only: observations (B, num_ctrl, obs_dim) and action
 (B, num_unctrl) and ``partners``, the members' names (B, num_unctrl). ``info["dists"]``
 (B, num_p, 2) holds the pre-squash Gaussian (mean, std) of every partner that has one
 (a trained drone's ``last_dist``), NaN for rule-based partners and learner slots.
+
+Each episode's team is drawn from a generator seeded by the episode's key (the core's
+``state.key``) and the Match's seed, and each drone a policy acts for carries a random
+key of its episode, step and slot (``DroneBatch.keys``), so an episode plays the same
+whichever row it runs in. :meth:`Match.keep` lets finished rows leave the batch; the
+policies keep seeing every remaining drone under its first row number (its seat), so
+their per-episode memory needs no moving.
 """
 
 from __future__ import annotations
@@ -20,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from atdrone.envs.core import BatchedPursuit
+from atdrone.envs.observation import Poses
+from atdrone.envs.streams import DRONE_DRAWS, fold
 from atdrone.policies.base import DroneBatch, Policy
 from atdrone.policies.zoo import Zoo
 
@@ -51,12 +60,16 @@ class Match:
             raise ValueError(f"{self.num_unctrl} partner slots but no partner policies")
         self.shuffle_slots = shuffle_slots
         self.sampler = sampler or self._uniform
-        self.rng = np.random.default_rng(seed)
+        self.seed = int(np.random.SeedSequence(seed).entropy)  # type: ignore[arg-type]  # with an episode key: its team
         B = core.num_envs
         self.slots = np.tile(np.arange(core.num_p), (B, 1))  # learners first, then partners
         self.members = np.zeros((B, self.num_unctrl), dtype=np.intp)
+        self.seats = np.arange(B)  # the row number the policies know each row by (its first row)
+        self.num_seats = B
         self._rows = np.arange(B)[:, None]
         self._obs: np.ndarray | None = None
+        self._step_keys: np.ndarray | None = None  # the core's step keys, once per step
+        self._seat_poses: Poses | None = None  # seat-sized poses, once rows have left
         self.drawn: Counter[str] = Counter()  # partner profile ("a|b", ids sorted) -> episodes started with it
 
     def _uniform(self, rng: np.random.Generator, n: int) -> np.ndarray:
@@ -73,11 +86,15 @@ class Match:
         return self.slots[:, self.num_ctrl :]
 
     def _assign(self, envs: np.ndarray) -> None:
-        n, P = len(envs), self.core.num_p
+        """Draw the teams of the episodes starting in rows ``envs``: one generator per episode, from its key."""
+        if not len(envs):
+            return
+        P = self.core.num_p
+        rngs = [np.random.Generator(np.random.PCG64([int(k), self.seed])) for k in self.core.state.key[envs]]
         if self.shuffle_slots:
-            self.slots[envs] = np.argsort(self.rng.random((n, P)), axis=1)
+            self.slots[envs] = np.argsort(np.stack([rng.random(P) for rng in rngs]), axis=1)
         if self.num_unctrl:
-            drawn = self.sampler(self.rng, n)
+            drawn = np.concatenate([self.sampler(rng, 1) for rng in rngs])
             self.members[envs] = drawn
             self._count(drawn)
 
@@ -87,15 +104,62 @@ class Match:
         for profile, n in zip(profiles, counts, strict=True):
             self.drawn["|".join(sorted(self._names[profile]))] += int(n)
 
-    def reset(self, seed: int | None = None) -> np.ndarray:
-        """Reset every environment and draw new teams; learner observations (B, num_ctrl, D)."""
+    def reset(self, seed: int | None = None, episodes: np.ndarray | None = None) -> np.ndarray:
+        """Reset every environment (to ``episodes``, see the core's reset) and draw new teams.
+
+        Returns the learner observations (B, num_ctrl, D).
+        """
         if seed is not None:
-            self.rng = np.random.default_rng([seed, 1])
-        self._obs = self.core.reset(seed=seed)
+            self.seed = seed
+        self._obs = self.core.reset(seed=seed, episodes=episodes)
+        self._step_keys = None
         self._assign(np.arange(self.core.num_envs))
         for policy in self.partners:
-            policy.reset(np.ones(self.core.num_envs, dtype=bool))
+            policy.reset(np.ones(self.num_seats, dtype=bool))
         return self.learner_view(self._obs)
+
+    def keep(self, rows: np.ndarray) -> None:
+        """Drop every row but ``rows`` from the core and the teams; the policies still know them by seat."""
+        rows = np.asarray(rows, dtype=np.intp)
+        if self._seat_poses is None:
+            s = self.core.state
+            self._seat_poses = Poses(s.pos.copy(), s.heading.copy(), s.captured.copy(), self.core.arena)
+        self.core.keep(rows)
+        self.slots, self.members, self.seats = self.slots[rows], self.members[rows], self.seats[rows]
+        self._rows = np.arange(len(rows))[:, None]
+        if self._obs is not None:
+            self._obs = self._obs[rows]
+        self._step_keys = None
+
+    def by_seat(self, mask: np.ndarray) -> np.ndarray:
+        """A row mask (B,) as a seat mask (num_seats,): what the policies' ``reset`` takes."""
+        if self._seat_poses is None:
+            return mask
+        out = np.zeros(self.num_seats, dtype=bool)
+        out[self.seats] = mask
+        return out
+
+    def poses(self) -> Poses:
+        """The core's poses, with rows at their seats once rows have left (the rows policies index)."""
+        poses = self.core.poses()
+        full = self._seat_poses
+        if full is None:
+            return poses
+        full.pos[self.seats], full.heading[self.seats], full.captured[self.seats] = (
+            poses.pos,
+            poses.heading,
+            poses.captured,
+        )
+        return full
+
+    def drones(self, env: np.ndarray, slot: np.ndarray, poses: Poses | None = None) -> DroneBatch:
+        """The drones in rows ``env`` and pursuer ``slot`` (M,) as the policies see them: by seat, with their keys."""
+        assert self._obs is not None
+        if self._step_keys is None:
+            self._step_keys = self.core.step_keys()
+        keys = fold(self._step_keys[env], DRONE_DRAWS + slot)
+        poses = self.poses() if poses is None else poses
+        return DroneBatch(obs=self._obs[env, slot], env=self.seats[env], slot=slot, poses=poses, keys=keys)
 
     def learner_view(self, obs: np.ndarray) -> np.ndarray:
         return obs[self._rows, self.learner_slots]
@@ -120,19 +184,18 @@ class Match:
         if self._obs is None:
             raise RuntimeError("call reset() first")
         env = np.repeat(np.arange(self.core.num_envs), self.num_ctrl)
-        slot = self.learner_slots.reshape(-1)
-        return DroneBatch(obs=self._obs[env, slot], env=env, slot=slot, poses=self.core.poses())
+        return self.drones(env, self.learner_slots.reshape(-1))
 
     def partner_actions(self, actions: np.ndarray, dists: np.ndarray | None = None) -> None:
         """Fill the partner slots of ``actions`` (B, num_p) from the partner policies, and of ``dists``
         (B, num_p, 2) the (mean, std) of those whose policy exposes its last distribution."""
         assert self._obs is not None
-        poses = self.core.poses()
+        poses = self.poses()
         for m, policy in enumerate(self.partners):
             env, j = np.nonzero(self.members == m)
             if len(env):
                 slot = self.partner_slots[env, j]
-                actions[env, slot] = policy.act(DroneBatch(self._obs[env, slot], env, slot, poses))
+                actions[env, slot] = policy.act(self.drones(env, slot, poses))
                 last = getattr(policy, "last_dist", None)
                 if dists is not None and last is not None:
                     dists[env, slot, 0], dists[env, slot, 1] = last
@@ -155,13 +218,14 @@ class Match:
         dists = np.full((B, self.core.num_p, 2), np.nan)
         self.partner_actions(actions, dists)
         obs, rewards, dones, info = self.core.step(actions)
+        self._step_keys = None
         info["actions"] = actions  # every slot's turn as executed: learners' and partners'
         info["dists"] = dists
         info["final_obs"] = self.learner_view(info["final_obs"])
         info["team"] = self.team()
         if dones.any():
             for policy in self.partners:
-                policy.reset(dones)
+                policy.reset(self.by_seat(dones))
             self._assign(np.flatnonzero(dones))
         self._obs = obs
         return self.learner_view(obs), rewards[:, : self.num_ctrl], dones, info
