@@ -53,7 +53,7 @@ class Cell:
 
     @property
     def name(self) -> str:
-        """The cell's run name (its folder under ``runs/`` and its MLflow experiment)."""
+        """The cell's name in the benchmark (its record ``cells/<name>.json``)."""
         if self.kind == "method":
             return f"{self.method}-{self.task}-s{self.seed}"
         if self.kind == "br":
@@ -71,6 +71,12 @@ def cells(cfg: BenchmarkConfig) -> list[Cell]:
         grid += [Cell("br", "br", t, s, z) for t in cfg.tasks for z in cfg.zoos for s in cfg.seeds]
     grid += [Cell("floor", "floor", t, FLOOR_SEED, z) for t in cfg.tasks for z in cfg.zoos]
     return grid
+
+
+def run_name(cfg: BenchmarkConfig, cell: Cell) -> str:
+    """The service run of a cell: its folder under ``<folder>/runs/``, MLflow experiment and registry actor,
+    named after the benchmark too (two benchmarks on one cluster never share a registry actor's name)."""
+    return f"{cfg.name}-{cell.name}"
 
 
 def experiment_document(cfg: BenchmarkConfig, cell: Cell) -> dict[str, Any]:
@@ -91,8 +97,8 @@ def experiment_document(cfg: BenchmarkConfig, cell: Cell) -> dict[str, Any]:
         doc.update(algorithm="br", br={"zoo": cell.zoo})
     doc.update(cfg.experiment)
     doc.update(
-        name=cell.name,
-        experiment=f"{cfg.name}-{cell.name}",
+        name=run_name(cfg, cell),
+        experiment=run_name(cfg, cell),
         task=cell.task,
         seed=cell.seed,
         out_dir=str(cfg.folder / "runs"),

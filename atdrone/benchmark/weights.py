@@ -3,7 +3,8 @@ selection (validation) zoo, copied into the results folder with a manifest.
 
 ``<results>/weights/<method>/<task>.pt`` is the checkpoint (the project's format: JSON
 header + tensors, digest-checked when loaded) and ``<task>.json`` its manifest: method,
-task, seed, algorithm, member, the budget it was trained with, the sha256 of the file,
+task, seed, algorithm, member, the budget it was trained with, the sha256 of the file
+(and of its tensors alone, ``weights_sha256``, which the header carries),
 its metrics on every zoo and what it was chosen on. Only the selection zoo's scores
 choose (SUC, then REW, then the lower seed), never a test zoo's. The manifest is
 written after the file, so a manifest names a complete file. ``weights:METHOD/TASK``
@@ -20,6 +21,7 @@ from typing import Any
 
 from atdrone.benchmark.config import BenchmarkConfig
 from atdrone.fileio import atomic_write_bytes
+from atdrone.models.checkpoint import read_header
 from atdrone.resolve import weights_checkpoint, weights_manifest
 from atdrone.rundir import RunError
 
@@ -60,6 +62,7 @@ def keep_weights(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> lis
                 "member": best["member"],
                 "file": f"{task}.pt",
                 "sha256": digest,
+                "weights_sha256": read_header(cfg.folder / best["checkpoint"])["sha256"],
                 "selected_on": {"zoo": zoo, **({k: best["metrics"][zoo][k] for k in ("SUC", "REW")} if zoo else {})},
                 "budget": {**best["budget"], "env_steps_planned": cfg.env_steps},
                 "metrics": best["metrics"],
