@@ -496,7 +496,7 @@ def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run_benchmark(args: argparse.Namespace) -> int:
-    from atdrone.benchmark.config import load_benchmark
+    from atdrone.benchmark.cells import load_benchmark
     from atdrone.benchmark.job import run_benchmark as run
 
     cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)

@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from atdrone.benchmark.config import load_benchmark
+    from atdrone.benchmark.cells import load_benchmark
     from atdrone.benchmark.job import run_benchmark
     from atdrone.errors import UserError
 

@@ -17,7 +17,7 @@ from typing import Any
 import mlflow
 import pandas as pd
 
-from atdrone.benchmark.config import load_benchmark
+from atdrone.benchmark.cells import load_benchmark
 from atdrone.benchmark.job import STATE_FILE, run_benchmark
 
 REPO = Path(__file__).resolve().parent.parent

@@ -15,7 +15,7 @@ os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # loopback only, as the s
 from ray._private import ray_constants
 ray_constants.ENABLE_RAY_CLUSTER = False
 from ray.cluster_utils import Cluster
-from atdrone.benchmark.config import load_benchmark
+from atdrone.benchmark.cells import load_benchmark
 from atdrone.benchmark.job import run_benchmark
 
 doc, uri = json.loads(sys.argv[1]), sys.argv[2]

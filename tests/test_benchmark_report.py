@@ -14,8 +14,7 @@ import pytest
 import scipy.stats
 
 from atdrone.benchmark import stats
-from atdrone.benchmark.cells import Cell, cells, experiment_document
-from atdrone.benchmark.config import load_benchmark
+from atdrone.benchmark.cells import Cell, cells, experiment_document, load_benchmark
 from atdrone.benchmark.report import write_report
 from atdrone.benchmark.weights import keep_weights
 from atdrone.config import ConfigError
@@ -195,3 +194,9 @@ def test_a_folder_holding_another_benchmark_is_refused(tmp_path: Path) -> None:
     _check_folder(load_benchmark({**DOC, "out_dir": str(tmp_path), "max_parallel": 1}))  # placement only
     with pytest.raises(RunError, match="different benchmark"):
         _check_folder(load_benchmark({**DOC, "out_dir": str(tmp_path), "seeds": [0, 1]}))
+
+
+def test_the_quick_preset_loads_with_every_method_on_the_four_tasks() -> None:
+    cfg = load_benchmark("quick")  # paper.json is checked the same way by hand: each load takes seconds
+    assert len(cfg.methods) == 8 and len(cfg.tasks) == 4 and len(cfg.seeds) >= 3
+    assert cfg.select_zoo == "validation" and cfg.best_response

@@ -23,6 +23,7 @@ import hashlib
 import json
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -30,7 +31,7 @@ from typing import Any, Literal
 import numpy as np
 
 from atdrone.benchmark.budget import plan
-from atdrone.benchmark.config import BenchmarkConfig, method_document
+from atdrone.benchmark.config import BenchmarkConfig, method_document, parse_benchmark
 from atdrone.config import ConfigError
 from atdrone.learn.ppo import ppo_config
 from atdrone.policies.base import DroneBatch, StatelessPolicy
@@ -38,6 +39,7 @@ from atdrone.service.experiment import ExperimentConfig, load_experiment
 
 EVAL_SEED = 10_000  # evaluation episodes of seed s come from EVAL_SEED + s: apart from training's seeds
 FLOOR_SEED = 0
+MAX_CELLS = 10_000
 CellKind = Literal["method", "br", "floor"]
 
 
@@ -137,6 +139,21 @@ def experiment(cfg: BenchmarkConfig, cell: Cell) -> ExperimentConfig:
         return load_experiment(experiment_document(cfg, cell))
     except ConfigError as exc:
         raise ConfigError(where, str(exc)) from None
+
+
+def load_benchmark(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> BenchmarkConfig:
+    """A validated BenchmarkConfig (:func:`atdrone.benchmark.config.parse_benchmark`) whose every cell's
+    experiment is built and validated too, so a bad method, task or zoo is refused before anything trains."""
+    cfg = parse_benchmark(path_or_doc, **overrides)
+    grid = cells(cfg)
+    if len(grid) > MAX_CELLS:
+        raise ConfigError("methods", f"{len(grid):,} cells: at most {MAX_CELLS:,}")
+    seen: set[str] = set()
+    for cell in grid:  # one per method (and one best response): the rest differ only in task, seed and zoo
+        if cell.kind != "floor" and cell.method not in seen:
+            seen.add(cell.method)
+            experiment(cfg, cell)
+    return cfg
 
 
 def final_member(run_dir: Path, algorithm: str) -> str:

@@ -46,7 +46,6 @@ from atdrone.config import (
 )
 from atdrone.policies.zoo import PolicyError, load_zoo
 
-MAX_CELLS = 10_000
 PLACEMENT = ("out_dir", "results_dir", "max_parallel")  # where and how fast, not what: a resume may change them
 
 
@@ -125,11 +124,9 @@ def _experiment_names() -> tuple[str, ...]:
     return tuple(sorted(p.stem for p in (CONFIG_DIR / "experiments").glob("*.json")))
 
 
-def load_benchmark(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> BenchmarkConfig:
-    """A validated BenchmarkConfig from a JSON file (a configs/benchmarks name or a path) or a mapping.
-
-    Every cell's experiment is built and validated here (:func:`atdrone.benchmark.cells.experiment`), so
-    a bad method, task or zoo is refused before anything trains."""
+def parse_benchmark(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> BenchmarkConfig:
+    """A BenchmarkConfig from a JSON file (a configs/benchmarks name or a path) or a mapping, its own keys
+    checked; :func:`atdrone.benchmark.cells.load_benchmark` also builds every cell's experiment."""
     if isinstance(path_or_doc, Mapping):
         doc = dict(path_or_doc)
     else:
@@ -140,18 +137,6 @@ def load_benchmark(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any
         doc = found
     cfg: BenchmarkConfig = load_config(BenchmarkConfig, doc, "benchmarks", **overrides)
     _check(cfg)
-    from atdrone.benchmark.cells import cells, experiment
-
-    grid = cells(cfg)
-    if len(grid) > MAX_CELLS:
-        raise ConfigError("methods", f"{len(grid):,} cells: at most {MAX_CELLS:,}")
-    seen: set[str] = set()
-    for cell in grid:  # one per method (and one best response): the rest differ only in task, seed and zoo
-        key = cell.method
-        if cell.kind == "floor" or key in seen:
-            continue
-        seen.add(key)
-        experiment(cfg, cell)
     return cfg
 
 
