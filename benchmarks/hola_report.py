@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -49,7 +50,7 @@ from atdrone.learn.ppo import PPOConfig
 from atdrone.teams.evaluation import METRICS
 
 ALGORITHMS = ("hola", "hola_no_g", "sp", "pbt", "mappo", "naht_d", "naht_d_no_dec", "fcp")
-ZOOS = ("zoo1", "zoo2", "zoo3")
+ZOOS = ("zoo1", "zoo2", "zoo3")  # the default --zoos: the paper's unseen zoos (zoo4: the diverse held-out zoo)
 UPDATE_ENV_STEPS = PPOConfig().num_envs * PPOConfig().rollout_steps  # of the default preset: 64 x 128
 
 
@@ -98,6 +99,18 @@ def run_name(task: str, algorithm: str, seed: int, tag: str = "") -> str:
     return f"{task}-{algorithm}{'+' + tag if tag else ''}-s{seed}"
 
 
+def machine_cpu_seconds() -> float:
+    """CPU seconds the whole machine has spent (user + nice + system + irq, /proc/stat) since boot.
+
+    A Ray run's work is spread over actor processes that come and go, so a run's CPU time is
+    read as the machine's over the run: exact when the run is alone on the machine, an upper
+    bound when anything else ran beside it (the report says which).
+    """
+    fields = Path("/proc/stat").read_text().splitlines()[0].split()[1:8]
+    user, nice, system, _idle, _iowait, irq, softirq = (int(f) for f in fields)
+    return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
+
+
 def write_json(path: Path, data: Any) -> None:
     from atdrone.fileio import atomic_write_bytes
 
@@ -124,9 +137,15 @@ def train(args: argparse.Namespace) -> None:
                     f"[train] {cfg.name}: {'resuming' if resume else 'starting'} ({cfg.generations} generations)",
                     flush=True,
                 )
-                t0 = time.perf_counter()
+                t0, cpu0 = time.perf_counter(), machine_cpu_seconds()
                 run_experiment(cfg, resume=resume, tracking_uri=tracking, progress=True)
-                print(f"[train] {cfg.name}: done in {time.perf_counter() - t0:.0f}s", flush=True)
+                wall, cpu = time.perf_counter() - t0, machine_cpu_seconds() - cpu0
+                # a resumed run's compute counts from its resume only: marked so
+                write_json(
+                    run_dir / "compute.json",
+                    {"wall_s": wall, "machine_cpu_s": cpu, "resumed": resume, "load_avg_1min_end": os.getloadavg()[0]},
+                )
+                print(f"[train] {cfg.name}: done in {wall:.0f}s ({cpu:.0f} machine CPU s)", flush=True)
 
 
 # ------------------------------------------------------------------ phase 2
@@ -157,15 +176,18 @@ def evaluate_runs(args: argparse.Namespace) -> None:
                 members = {label: final_member(run_dir, algorithm)}
                 if algorithm == "sp" and not args.tag:
                     members["sp@samples"] = sp_at_samples(run_dir, task, seed, args)
-                rows = []
+                rows: list[dict[str, Any]] = []
+                profiles: list[dict[str, Any]] = []
                 for label, member in members.items():
                     if member is None:
                         continue
                     policy = load_policy(run_dir / "members" / f"{member}.pt")
-                    for zoo in ZOOS:
-                        t0 = time.perf_counter()
+                    for zoo in args.zoos:
+                        t0, cpu0 = time.perf_counter(), time.process_time()
                         result = evaluate(policy, task, zoo, episodes=args.episodes, seeds=[1000 + seed])
-                        rows.append({"algorithm": label, "member": member, "zoo": zoo, **result.mean})
+                        compute = {"eval_wall_s": time.perf_counter() - t0, "eval_cpu_s": time.process_time() - cpu0}
+                        rows.append({"algorithm": label, "member": member, "zoo": zoo, **result.mean, **compute})
+                        profiles += by_profile(result.records, label, member, zoo)
                         print(
                             f"[evaluate] {run_dir.name} {label} {member} {zoo}: SUC {result.mean['SUC']:.1f} "
                             f"({time.perf_counter() - t0:.0f}s)",
@@ -173,8 +195,33 @@ def evaluate_runs(args: argparse.Namespace) -> None:
                         )
                 write_json(
                     target,
-                    {"task": task, "seed": seed, "episodes": args.episodes, "rows": rows, "budget": budget_of(run_dir)},
+                    {
+                        "task": task,
+                        "seed": seed,
+                        "episodes": args.episodes,
+                        "rows": rows,
+                        "profiles": profiles,
+                        "budget": budget_of(run_dir),
+                        "compute": compute_of(run_dir),
+                    },
                 )
+
+
+def by_profile(records: pd.DataFrame, label: str, member: str, zoo: str) -> list[dict[str, Any]]:
+    """The metrics per partner profile (the partners' names, sorted, '+'-joined) of one evaluation."""
+    from atdrone.teams.evaluation import metrics
+
+    profile = records["partners"].map(lambda team: "+".join(sorted(str(team).split(","))))
+    return [
+        {"algorithm": label, "member": member, "zoo": zoo, "profile": name, "episodes": len(g), **metrics(g)}
+        for name, g in records.groupby(profile, sort=True)
+    ]
+
+
+def compute_of(run_dir: Path) -> dict[str, Any]:
+    """The training run's wall and machine CPU seconds (compute.json; {} for runs trained before it existed)."""
+    path = run_dir / "compute.json"
+    return json.loads(path.read_text()) if path.exists() else {}
 
 
 def budget_of(run_dir: Path) -> dict[str, Any]:
@@ -249,6 +296,10 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
                             / max(graph["resolution"]["return"]["nodes"], 1),
                             "contested_SUC": graph["resolution"]["SUC"]["contested_nodes"]
                             / max(graph["resolution"]["SUC"]["nodes"], 1),
+                            # rho of random weights on the same hyperedges (NaN for runs without a null)
+                            "null_entropy": graph.get("null", {}).get("entropy", float("nan")),
+                            "null_entropy_sd": graph.get("null", {}).get("entropy_sd", float("nan")),
+                            "null_max_rho": graph.get("null", {}).get("max_rho", float("nan")),
                         }
                     )
     return pd.DataFrame(rows)
@@ -261,11 +312,23 @@ def report(args: argparse.Namespace) -> None:
         doc = json.loads(path.read_text())
         for row in doc["rows"]:
             evals.append({"task": doc["task"], "seed": doc["seed"], **row})
-        budget_rows.append({"run": path.stem, **doc["budget"]})
+        # evaluations written before compute was recorded have none: left out, shown as '-'
+        spent = {
+            k: sum(r[k] for r in doc["rows"])
+            for k in ("eval_wall_s", "eval_cpu_s")
+            if doc["rows"] and all(k in r for r in doc["rows"])
+        }
+        budget_rows.append({"run": path.stem, **doc["budget"], "compute": doc.get("compute", {}), **spent})
     if not evals:
         print("[report] nothing evaluated yet")
         return
     frame = pd.DataFrame(evals)
+    profile_rows = [
+        {"task": d["task"], "seed": d["seed"], **row}
+        for path in sorted((Path(args.out) / "eval").glob("*.json"))
+        for d in [json.loads(path.read_text())]
+        for row in d.get("profiles", [])
+    ]
     lines = [f"# {args.title}: {', '.join(args.tasks)}", ""]
     lines.append(
         f"Evaluation: {args.episodes} episodes per run and zoo; mean +- std (ddof 1) over seeds "
@@ -330,20 +393,29 @@ def report(args: argparse.Namespace) -> None:
                     )
                     + " |"
                 )
+    if profile_rows:
+        lines += profile_tables(pd.DataFrame(profile_rows), doc)
     if budget_rows:
         lines += [
             "",
             "## Budgets per run",
             "",
-            "| run | env steps | learner samples | eval env steps |",
-            "|---|---|---|---|",
+            "Training: env steps, learner samples and the service's evaluation-match env steps of the run; wall and "
+            "machine CPU seconds of its training (the machine's /proc/stat over the run: exact when the run was "
+            "alone on the machine, an upper bound otherwise; '-' for runs trained before this was recorded; "
+            "'resumed': counted from the resume). Evaluation: wall and CPU seconds of the report's zoo evaluations "
+            "of the run (this process).",
+            "",
+            "| run | env steps | learner samples | eval env steps | train wall s | train machine CPU s "
+            "| zoo-eval wall s | zoo-eval CPU s |",
+            "|---|---|---|---|---|---|---|---|",
         ]
-        lines += [
-            "| "
-            + " | ".join([b["run"], *(f"{b.get(k, 0):,}" for k in ("env_steps", "learner_samples", "eval_env_steps"))])
-            + " |"
-            for b in budget_rows
-        ]
+        for b in budget_rows:
+            c = b.get("compute", {})
+            train = [f"{c[k]:.0f}{' (resumed)' if c.get('resumed') else ''}" if k in c else "-" for k in COMPUTE]
+            ev = [f"{b[k]:.0f}" if k in b else "-" for k in ("eval_wall_s", "eval_cpu_s")]
+            counts = [f"{b.get(k, 0):,}" for k in ("env_steps", "learner_samples", "eval_env_steps")]
+            lines.append("| " + " | ".join([b["run"], *counts, *train, *ev]) + " |")
     cross = []
     for path in sorted((Path(args.out) / "crossplay").glob("*.json")):
         c = json.loads(path.read_text())
@@ -367,7 +439,16 @@ def report(args: argparse.Namespace) -> None:
         doc["rho_entropy"] = ent.to_dict(orient="records")
         summary = (
             ent.groupby(["task", "algorithm", "generation"])[
-                ["rho_entropy", "max_entropy", "max_rho", "contested_return", "contested_SUC"]
+                [
+                    "rho_entropy",
+                    "null_entropy",
+                    "null_entropy_sd",
+                    "max_entropy",
+                    "max_rho",
+                    "null_max_rho",
+                    "contested_return",
+                    "contested_SUC",
+                ]
             ]
             .mean()
             .round(3)
@@ -383,6 +464,41 @@ def report(args: argparse.Namespace) -> None:
     frame.to_csv(results / "evaluations.csv", index=False)
 
 
+COMPUTE = ("wall_s", "machine_cpu_s")
+
+
+def profile_tables(profiles: pd.DataFrame, doc: dict[str, Any]) -> list[str]:
+    """Zoos with several members, split by partner profile: SUC mean +- std over seeds per algorithm, and the
+    same grouped by how many trained (checkpoint) partners the team had."""
+    from atdrone.policies.zoo import load_zoo
+
+    lines: list[str] = []
+    doc["profiles"] = profiles.to_dict(orient="records")
+    for (task, zoo), cell in profiles.groupby(["task", "zoo"], sort=True):
+        if cell["profile"].nunique() < 2:
+            continue
+        learned = {m.name for m in load_zoo(zoo).spec.members if m.kind == "checkpoint"}
+        counts = [sum(n in learned for n in p.split("+")) for p in cell["profile"]]
+        cell = cell.assign(trained=counts)
+        for key, title in (("profile", "partner profile"), ("trained", "trained partners in the team")):
+            if cell[key].nunique() < 2:  # e.g. Zoo 2: every team has two trained partners
+                continue
+            # per seed first (episodes pooled within a seed), then mean +- std over seeds
+            per_seed = cell.groupby(["algorithm", key, "seed"]).apply(
+                lambda g: 100.0 * float((g["SUC"] / 100.0 * g["episodes"]).sum() / g["episodes"].sum()),
+                include_groups=False,
+            )
+            stats = per_seed.groupby(["algorithm", key]).agg(["mean", "std", "count"])
+            table = stats.apply(lambda r: f"{r['mean']:.1f} +- {r['std']:.1f} (n {int(r['count'])})", axis=1)
+            lines += [
+                "",
+                f"## {task}, {zoo} by {title}: SUC mean +- std over seeds",
+                "",
+                md_table(table.unstack(key).fillna("-")),
+            ]
+    return lines
+
+
 def plot_entropy(ent: pd.DataFrame, path: Path) -> None:
     import matplotlib
 
@@ -396,6 +512,9 @@ def plot_entropy(ent: pd.DataFrame, path: Path) -> None:
         for algorithm, g in sub.groupby("algorithm"):
             m = g.groupby("generation")["rho_entropy"].agg(["mean", "std"])
             ax.errorbar(m.index, m["mean"], yerr=m["std"].fillna(0), label=algorithm, capsize=3)
+        null = sub.groupby("generation")["null_entropy"].mean()
+        if null.notna().any():
+            ax.plot(null.index, null.values, "k--", label="null: random weights, same hyperedges")
         m = sub.groupby("generation")["max_entropy"].mean()
         ax.plot(m.index, m.values, "k:", label="log |Pi - N_t| (uniform)")
         ax.set_title(f"rho entropy, {task}")
@@ -432,6 +551,7 @@ def main() -> None:
     parser.add_argument("--title", default="HOLA-Drone V2 vs SP", help="the report's heading")
     parser.add_argument("--tag", default="", help="a variant's name: its runs and rows are '<algorithm>+<tag>'")
     parser.add_argument("--episodes", type=int, default=500, help="evaluation episodes per run and zoo")
+    parser.add_argument("--zoos", nargs="+", default=list(ZOOS), help="evaluation zoos (configs/zoos)")
     parser.add_argument("--crossplay-episodes", type=int, default=200)
     parser.add_argument("--resume", action="store_true", help="accepted for clarity: every phase always resumes")
     parser.add_argument("--out", default="reports/hola_report", help="runs, evaluations (not committed)")

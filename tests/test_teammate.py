@@ -18,7 +18,7 @@ from atdrone.learn.rollout import RolloutWorker
 from atdrone.models.teammate import TeammateActorCritic, TeammateConfig
 from atdrone.policies.base import DroneBatch, StatelessPolicy
 from atdrone.policies.rules import GreedyPolicy
-from atdrone.policies.zoo import load_zoo
+from atdrone.policies.zoo import ZOO_NAMES, load_zoo
 from atdrone.service.experiment import load_experiment
 from atdrone.teams.partners import LEARNER_COPY, VariableCount
 from atdrone.teams.pools import check_pool, load_pool, shared_members
@@ -254,3 +254,11 @@ def test_teammate_coef_weighs_the_decoder_loss_in_the_update():
 
     assert not torch.equal(updated(1.0, True), updated(0.1, True))
     assert torch.equal(updated(1.0, False), updated(0.1, False))  # no decoder: nothing to weigh
+
+
+def test_the_committed_validation_zoo_and_training_pool_share_no_drone_with_a_test_zoo():
+    """Selection (validation) and training (the default pool) never see a test partner, and the pool is not the
+    validation set either: by rule and parameters, and by weights digest for trained drones."""
+    assert shared_members(load_zoo("validation")) == []
+    assert shared_members(load_pool("train_pool"), (*ZOO_NAMES, "validation")) == []
+    assert any(m.kind == "checkpoint" for m in load_zoo("validation").spec.members)  # trained drones, not rules only
