@@ -13,6 +13,7 @@ new subcommand is one more pair and one more table row.
                      [--seeds 0 1 2] [--out-dir eval_out]
     atdrone deploy CONFIG [--arm] [--backend sim|cflib] [--episodes N] [--compare] [--tracking-uri URI]
     atdrone deploy report LOG
+    atdrone benchmark CONFIG [--address ADDR] [--out-dir DIR] [--results-dir DIR] [--tracking-uri URI]
 """
 
 from __future__ import annotations
@@ -29,7 +30,9 @@ from atdrone.errors import UserError
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
 EXIT_INTERRUPTED = 130  # Ctrl-C
-POLICY_HELP = "greedy, vicsek, a member id (hola-g3-0), models:/NAME@ALIAS, a checkpoint PATH or ZOO:MEMBER"
+POLICY_HELP = (
+    "greedy, vicsek, a member id (hola-g3-0), models:/NAME@ALIAS, weights:METHOD/TASK, a checkpoint PATH or ZOO:MEMBER"
+)
 
 
 @dataclass(frozen=True)
@@ -471,6 +474,39 @@ def run_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------- benchmark
+def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "benchmark",
+        help="train and evaluate every method x task x seed of a benchmark config, then report (resumable)",
+        description="Run a benchmark (configs/benchmarks/*.json): every (method, task, seed) cell and the best "
+        "responses on a Ray cluster (a local Ray by default), each final learner evaluated on every zoo; then the "
+        "report (Markdown, CSV, PNG) and the kept weights in the results folder and on an MLflow run. Run it again "
+        "after an interruption: finished cells are skipped, an interrupted one resumes.",
+    )
+    p.add_argument("config", help="benchmark config: a configs/benchmarks name (quick, paper) or a JSON path")
+    p.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS or a local Ray)")
+    p.add_argument("--out-dir", default=None, help="override out_dir (the cells' runs and records)")
+    p.add_argument("--results-dir", default=None, help="override results_dir (the report and weights)")
+    p.add_argument(
+        "--tracking-uri", default=None, help="MLflow tracking URI (default MLFLOW_TRACKING_URI or ./mlflow.db)"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress output")
+    return p
+
+
+def run_benchmark(args: argparse.Namespace) -> int:
+    from atdrone.benchmark.cells import load_benchmark
+    from atdrone.benchmark.job import run_benchmark as run
+
+    cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)
+    summary = run(cfg, address=args.address, tracking_uri=args.tracking_uri, progress=not args.no_progress)
+    print(f"{cfg.name}: {len(summary['records'])} cells; report {cfg.results / 'report.md'}")
+    for m in summary["weights"]:
+        print(f"  weights:{m['method']}/{m['task']} (seed {m['seed']}, chosen on {m['selected_on']['zoo'] or '-'})")
+    return 0
+
+
 # ---------------------------------------------------------------- deploy
 def add_deploy(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -549,6 +585,7 @@ COMMANDS: dict[str, Command] = {
     "registry": Command(add_registry, run_registry),
     "evaluate": Command(add_evaluate, run_evaluate),
     "deploy": Command(add_deploy, run_deploy),
+    "benchmark": Command(add_benchmark, run_benchmark),
 }
 
 

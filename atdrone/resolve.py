@@ -5,7 +5,11 @@ A name is tried as, in this order:
 1. a rule drone: ``greedy``, ``vicsek``;
 2. a registered MLflow model: ``models:/NAME@ALIAS`` or ``models:/NAME/VERSION`` (its
    checkpoint is downloaded from the tracking store, and the registry member with the
-   same checkpoint digest is found when a registry has it);
+   same checkpoint digest is found when a registry has it); or a benchmark's kept weights:
+   ``weights:METHOD/TASK`` or ``weights:BENCHMARK/METHOD/TASK`` (``weights/<method>/<task>.pt``
+   and its manifest in a benchmark's results folder: those of ``$ATDRONE_WEIGHTS``, folders
+   separated by ``os.pathsep``, else every ``benchmarks/results/*``; the file's sha256 must
+   match the manifest's);
 3. a checkpoint file (a path that exists);
 4. a member id of a population registry (``hola-g3-0``): ``--db`` when given, else every
    registry under the runs folder (``runs/*/registry.db``);
@@ -33,6 +37,8 @@ from atdrone.registry import DEFAULT_PATH, ENV_VAR, Registry, RegistryError
 __all__ = ["PolicyNotFound", "Resolved", "resolve", "resolve_checkpoint", "resolve_policy"]
 
 MODEL_PREFIX = "models:/"
+WEIGHTS_PREFIX = "weights:"
+WEIGHTS_ENV = "ATDRONE_WEIGHTS"
 REGISTRY_GLOB = "*/registry.db"
 
 
@@ -44,7 +50,7 @@ class PolicyNotFound(PolicyError):
 class Resolved:
     """What a policy name was found as.
 
-    ``kind`` is one of rule, model, checkpoint, member, zoo; ``checkpoint`` is the file
+    ``kind`` is one of rule, model, weights, checkpoint, member, zoo; ``checkpoint`` is the file
     behind it (None for a rule drone); ``member`` the registry row when the name led to
     one (a member id, or a model whose version names its member), with ``registry`` the
     file it came from; ``task`` the task it was trained on when known.
@@ -81,7 +87,7 @@ def resolve(
     if not text:
         raise PolicyNotFound("no policy given: name a rule (greedy, vicsek), a member id, a models:/ URI or a file")
     tried: list[str] = []
-    for attempt in (_rule, _model, _file, _member, _zoo):
+    for attempt in (_rule, _model, _weights, _file, _member, _zoo):
         found = attempt(text, db, runs_dir, tracking_uri, tried)
         if found is not None:
             return found
@@ -162,6 +168,54 @@ def _model(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tri
     member, registry = _member_by_sha256(header.get("sha256"), db, runs_dir)
     label = member["id"] if member else text
     return Resolved(text, "model", label, path, member, registry, header.get("task"))
+
+
+def weights_checkpoint(results: Path, method: str, task: str) -> Path:
+    """Where a benchmark's results folder keeps the weights of ``method`` on ``task``."""
+    return Path(results) / "weights" / method / f"{task}.pt"
+
+
+def weights_manifest(results: Path, method: str, task: str) -> Path:
+    """The manifest beside :func:`weights_checkpoint` (method, task, seed, budget, sha256, metrics)."""
+    return weights_checkpoint(results, method, task).with_suffix(".json")
+
+
+def weights_roots() -> list[Path]:
+    """The benchmark results folders a ``weights:`` name is looked up in."""
+    if os.environ.get(WEIGHTS_ENV):
+        return [Path(p) for p in os.environ[WEIGHTS_ENV].split(os.pathsep) if p]
+    from atdrone.config import repo_path
+
+    roots = {
+        p.resolve() for base in (Path("benchmarks/results"), repo_path("benchmarks/results")) for p in base.glob("*")
+    }
+    return sorted(p for p in roots if (p / "weights").is_dir())
+
+
+def _weights(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:
+    if not text.startswith(WEIGHTS_PREFIX):
+        tried.append("a benchmark's weights (weights:METHOD/TASK)")
+        return None
+    import hashlib
+    import json
+
+    parts = text[len(WEIGHTS_PREFIX) :].split("/")
+    if len(parts) not in (2, 3) or not all(parts):
+        raise PolicyNotFound(f"{text!r}: name weights as weights:METHOD/TASK or weights:BENCHMARK/METHOD/TASK")
+    *bench, method, task = parts
+    roots = [r for r in weights_roots() if not bench or r.name == bench[0]]
+    found = [r for r in roots if weights_manifest(r, method, task).is_file()]
+    if not found:
+        where = ", ".join(map(str, roots)) or f"no results folder (set {WEIGHTS_ENV})"
+        raise PolicyNotFound(f"no weights {method}/{task} in {where}")
+    if len(found) > 1:
+        names = ", ".join(f"{WEIGHTS_PREFIX}{r.name}/{method}/{task}" for r in found)
+        raise PolicyNotFound(f"weights {method}/{task} are kept by several benchmarks: name one ({names})")
+    manifest = json.loads(weights_manifest(found[0], method, task).read_text())
+    path = weights_checkpoint(found[0], method, task)
+    if not path.is_file() or hashlib.sha256(path.read_bytes()).hexdigest() != manifest.get("sha256"):
+        raise PolicyError(f"{path}: missing or not the file its manifest names (sha256 differs)")
+    return Resolved(text, "weights", f"{method}-{task}", path, task=manifest.get("task"))
 
 
 def _file(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import time
 from pathlib import Path
@@ -45,6 +44,8 @@ import numpy as np
 import pandas as pd
 import scipy.stats
 
+from atdrone.benchmark.budget import plan as budget_plan
+from atdrone.benchmark.stats import md_table, mean_std, paired_difference
 from atdrone.learn.ppo import PPOConfig
 from atdrone.teams.evaluation import METRICS
 
@@ -56,21 +57,12 @@ UPDATE_ENV_STEPS = PPOConfig().num_envs * PPOConfig().rollout_steps  # of the de
 def plan(
     algorithm: str, env_steps: int, updates: int, hola: dict[str, Any], fcp: dict[str, Any] | None = None
 ) -> dict[str, Any]:
-    """Generations and the algorithm section giving about ``env_steps`` env steps per run."""
-    total = max(1, round(env_steps / UPDATE_ENV_STEPS))  # learner updates of the whole run
-    if algorithm in ("hola", "hola_no_g"):
-        pi0 = hola["pi0_seeds"]  # generation 0 trains pi0_seeds self-play runs of `updates` updates each
-        return {"generations": 1 + math.ceil((total - pi0 * updates) / updates), algorithm: dict(hola)}
-    if algorithm == "fcp":  # generation 0 also trains the frozen pool: seeds self-play runs of `updates` updates
-        fcp = dict(fcp or {"seeds": 3, "levels": 3})
-        return {"generations": max(1, math.ceil((total - fcp["seeds"] * updates) / updates)), "fcp": fcp}
-    if algorithm == "pbt":  # two members, each `updates / 2` updates per generation
-        return {
-            "generations": math.ceil(total / updates),
-            "updates_per_generation": updates // 2,
-            "pbt": {"population_size": 2},
-        }
-    return {"generations": math.ceil(total / updates), algorithm: {}}
+    """Generations and the algorithm section giving about ``env_steps`` env steps per run
+    (:func:`atdrone.benchmark.budget.plan` with this script's sections)."""
+    section = {"hola": dict(hola), "hola_no_g": dict(hola), "fcp": dict(fcp or {"seeds": 3, "levels": 3})}.get(
+        algorithm, {"population_size": 2} if algorithm == "pbt" else {}
+    )
+    return {**budget_plan(algorithm, section, env_steps, updates, UPDATE_ENV_STEPS), algorithm: section}
 
 
 def experiment(task: str, algorithm: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
@@ -350,7 +342,7 @@ def report(args: argparse.Namespace) -> None:
             "|---" * (len(METRICS) + 2) + "|",
         ]
         for algorithm, g in cell.groupby("algorithm", sort=False):
-            stats = {m: (float(g[m].mean()), float(g[m].std(ddof=1))) for m in METRICS}
+            stats = {m: mean_std(g[m]) for m in METRICS}
             doc["cells"].append(
                 {
                     "task": task,
@@ -376,25 +368,22 @@ def report(args: argparse.Namespace) -> None:
             elif reference in tagged_sp:
                 others = others[others.algorithm.str.endswith(reference[2:])]
             for algorithm, g in others.groupby("algorithm", sort=False):
-                paired = g.set_index("seed")[list(METRICS)].sub(ref[list(METRICS)]).dropna(how="all")
-                if len(paired) < 2:
+                diff = paired_difference(g.set_index("seed"), ref, METRICS)
+                if diff is None:
                     continue
-                diffs = {
-                    m: (float(paired[m].mean()), float(paired[m].std(ddof=1) / np.sqrt(len(paired)))) for m in METRICS
-                }
-                t95 = float(scipy.stats.t.ppf(0.975, len(paired) - 1))
                 doc["paired"].append(
                     {
                         "task": task,
                         "zoo": zoo,
                         "algorithm": algorithm,
                         "reference": reference,
-                        "n": len(paired),
-                        **{m: {"diff": d, "se": s, "ci95": [d - t95 * s, d + t95 * s]} for m, (d, s) in diffs.items()},
+                        **diff,
                     }
                 )
+                diffs = {m: (diff[m]["diff"], diff[m]["se"]) for m in METRICS}
+                t95 = float(scipy.stats.t.ppf(0.975, diff["n"] - 1))
                 lines.append(
-                    f"| {algorithm} - {reference} | {len(paired)} | "
+                    f"| {algorithm} - {reference} | {diff['n']} | "
                     + " | ".join(
                         f"{d:+.1f} +- {s:.1f} [{d - t95 * s:+.1f}, {d + t95 * s:+.1f}]" for d, s in diffs.values()
                     )
@@ -504,14 +493,6 @@ def profile_tables(profiles: pd.DataFrame, doc: dict[str, Any]) -> list[str]:
                 md_table(table.unstack(key).fillna("-")),
             ]
     return lines
-
-
-def md_table(frame: pd.DataFrame) -> str:
-    """A markdown table of a frame, its index as the first columns."""
-    flat = frame.reset_index()
-    rows = ["| " + " | ".join(map(str, flat.columns)) + " |", "|---" * len(flat.columns) + "|"]
-    rows += ["| " + " | ".join(str(v) for v in row) + " |" for row in flat.itertuples(index=False)]
-    return "\n".join(rows)
 
 
 def plot_entropy(ent: pd.DataFrame, path: Path) -> None:

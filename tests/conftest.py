@@ -17,6 +17,8 @@ import pytest
 # its own, never another's); the deploy flights (real-time, on UDP) share one worker, so their clocks are not
 # starved by each other; everything else is spread over the workers.
 _RAY_MODULES = (
+    "test_benchmark",
+    "test_benchmark_cluster",
     "test_faults",
     "test_hardening",
     "test_jobs",

@@ -1,0 +1,249 @@
+"""The cells of a benchmark: what each trains and evaluates, as an ordinary service experiment.
+
+Three kinds:
+
+- ``method``: a (method, task, seed) run of the method's experiment at the benchmark's
+  budget; its final learner is evaluated on every test zoo and on the selection zoo;
+- ``br``: the best response to one test zoo (the ``br`` algorithm, partners drawn
+  uniformly from that zoo) per (task, zoo, seed), the upper bound, evaluated on its zoo;
+- ``floor``: a random learner (uniform turns) with a zoo's partners per (task, zoo), no
+  training: the bottom of the normalised scores.
+
+:func:`run_cell` does one cell where it is called (a Ray task of the benchmark job, on
+any node) and returns its record, a JSON object: the final member, its checkpoint and
+digest, the budget spent and the metrics per zoo. A cell whose run was interrupted is
+resumed by the service (``resume=True``), so calling it again after a kill continues it.
+Every final learner with the same seed is evaluated on the same episodes (evaluation
+seed ``EVAL_SEED + seed``), so differences between methods are paired.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from atdrone.benchmark.budget import plan
+from atdrone.benchmark.config import BenchmarkConfig, method_document, parse_benchmark
+from atdrone.config import ConfigError
+from atdrone.learn.ppo import ppo_config
+from atdrone.policies.base import DroneBatch, StatelessPolicy
+from atdrone.service.experiment import ExperimentConfig, load_experiment
+
+EVAL_SEED = 10_000  # evaluation episodes of seed s come from EVAL_SEED + s: apart from training's seeds
+FLOOR_SEED = 0
+MAX_CELLS = 10_000
+CellKind = Literal["method", "br", "floor"]
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One unit of the grid: kind, method label ("br" / "floor" for the bounds), task, seed, zoo (bounds)."""
+
+    kind: CellKind
+    method: str
+    task: str
+    seed: int
+    zoo: str = ""
+
+    @property
+    def name(self) -> str:
+        """The cell's name in the benchmark (its record ``cells/<name>.json``)."""
+        if self.kind == "method":
+            return f"{self.method}-{self.task}-s{self.seed}"
+        if self.kind == "br":
+            return f"br-{self.zoo}-{self.task}-s{self.seed}"
+        return f"floor-{self.zoo}-{self.task}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def cells(cfg: BenchmarkConfig) -> list[Cell]:
+    """Every cell of the grid, in a fixed order: methods, then best responses, then floors."""
+    grid = [Cell("method", m, t, s) for m in cfg.methods for t in cfg.tasks for s in cfg.seeds]
+    if cfg.best_response:
+        grid += [Cell("br", "br", t, s, z) for t in cfg.tasks for z in cfg.zoos for s in cfg.seeds]
+    grid += [Cell("floor", "floor", t, FLOOR_SEED, z) for t in cfg.tasks for z in cfg.zoos]
+    return grid
+
+
+def run_name(cfg: BenchmarkConfig, cell: Cell) -> str:
+    """The service run of a cell: its folder under ``<folder>/runs/``, MLflow experiment and registry actor,
+    named after the benchmark too (two benchmarks on one cluster never share a registry actor's name)."""
+    return f"{cfg.name}-{cell.name}"
+
+
+def experiment_document(cfg: BenchmarkConfig, cell: Cell) -> dict[str, Any]:
+    """The cell's experiment document: the method's config (or a best response to the cell's zoo) at the
+    benchmark's budget, with no final evaluation of the service's own (the benchmark evaluates)."""
+    if cell.kind == "floor":
+        raise ValueError("a floor cell trains nothing")
+    if cell.kind == "method":
+        spec = cfg.methods[cell.method]
+        doc = method_document(spec)
+        pool = spec.pool or cfg.pool
+        algorithm = doc.get("algorithm")
+        if pool and isinstance(algorithm, str) and _has_pool(algorithm):
+            doc[algorithm] = {**doc.get(algorithm, {}), "pool": pool}
+    else:
+        first = method_document(next(iter(cfg.methods.values())))  # the shared settings of the first method
+        doc = {k: v for k, v in first.items() if k in ("ppo", "preset", "num_workers", "eval_episodes")}
+        doc.update(algorithm="br", br={"zoo": cell.zoo})
+    doc.update(cfg.experiment)
+    doc.update(
+        name=run_name(cfg, cell),
+        experiment=run_name(cfg, cell),
+        task=cell.task,
+        seed=cell.seed,
+        out_dir=str(cfg.folder / "runs"),
+        updates_per_generation=cfg.updates_per_generation,
+        final_zoo="",
+        select_zoo="",
+        gif=False,
+    )
+    algorithm = str(doc["algorithm"])
+    ppo = ppo_config(doc.get("ppo", {}), doc.get("preset", "default"))
+    doc.update(
+        plan(
+            algorithm,
+            doc.get(algorithm, {}),
+            cfg.env_steps,
+            cfg.updates_per_generation,
+            ppo.num_envs * ppo.rollout_steps,
+        )
+    )
+    return doc
+
+
+def _has_pool(algorithm: str) -> bool:
+    import dataclasses
+
+    from atdrone.population import ALGORITHMS
+
+    config = ALGORITHMS[algorithm].Config
+    return dataclasses.is_dataclass(config) and any(f.name == "pool" for f in dataclasses.fields(config))
+
+
+def experiment(cfg: BenchmarkConfig, cell: Cell) -> ExperimentConfig:
+    """The cell's validated experiment; a ConfigError names the method (``methods.<label>...``)."""
+    where = f"methods.{cell.method}" if cell.kind == "method" else "best_response"
+    try:
+        return load_experiment(experiment_document(cfg, cell))
+    except ConfigError as exc:
+        raise ConfigError(where, str(exc)) from None
+
+
+def load_benchmark(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> BenchmarkConfig:
+    """A validated BenchmarkConfig (:func:`atdrone.benchmark.config.parse_benchmark`) whose every cell's
+    experiment is built and validated too, so a bad method, task or zoo is refused before anything trains."""
+    cfg = parse_benchmark(path_or_doc, **overrides)
+    grid = cells(cfg)
+    if len(grid) > MAX_CELLS:
+        raise ConfigError("methods", f"{len(grid):,} cells: at most {MAX_CELLS:,}")
+    seen: set[str] = set()
+    for cell in grid:  # one per method (and one best response): the rest differ only in task, seed and zoo
+        if cell.kind != "floor" and cell.method not in seen:
+            seen.add(cell.method)
+            experiment(cfg, cell)
+    return cfg
+
+
+def final_member(run_dir: Path, algorithm: str) -> str:
+    """The run's final learner: HOLA's last learner, PBT's fittest final member, else the last member."""
+    state = json.loads((run_dir / "service_state.json").read_text())["coordinator"]["algorithm"]
+    if algorithm == "pbt":
+        last = sorted((run_dir / "generations").iterdir())[-1] / "pbt.json"
+        fitness = json.loads(last.read_text())["fitness"]
+        return str(max(state["population"], key=lambda m: (fitness.get(m, -1.0), m)))
+    if algorithm in ("hola", "hola_no_g"):
+        return str(state["learners"][-1])
+    return str(state["population"][-1])
+
+
+class RandomPolicy(StatelessPolicy):
+    """Uniform turns in [-1, 1] from its own seeded generator: the floor of the normalised scores."""
+
+    def __init__(self, seed: int) -> None:
+        self.name = "random"
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, batch: DroneBatch) -> np.ndarray:
+        return self.rng.uniform(-1.0, 1.0, len(batch)).astype(np.float32)
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def run_cell(cfg: BenchmarkConfig, cell: Cell, tracking_uri: str | None) -> dict[str, Any]:
+    """Train (or resume) and evaluate one cell here; its record (JSON-ready)."""
+    import torch
+
+    from atdrone.teams.evaluation import evaluate
+
+    torch.set_num_threads(1)
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    record: dict[str, Any] = {"cell": cell.to_dict(), "name": cell.name, "benchmark": cfg.digest()}
+    budget = {"env_steps": 0, "learner_samples": 0, "eval_env_steps": 0}
+    workers = 0
+    if cell.kind == "floor":
+        policy: Any = RandomPolicy(EVAL_SEED + cell.seed)
+        zoos = [cell.zoo]
+    else:
+        from atdrone.policies.neural import load_policy
+        from atdrone.service.driver import run_experiment
+
+        exp = experiment(cfg, cell)
+        run_experiment(exp, resume=True, tracking_uri=tracking_uri, progress=False)
+        run_dir = Path(exp.out_dir) / exp.name
+        state = json.loads((run_dir / "service_state.json").read_text())["coordinator"]
+        budget.update({k: int(v) for k, v in state.get("budget", {}).items()})
+        member = final_member(run_dir, exp.algorithm)
+        checkpoint = run_dir / "members" / f"{member}.pt"
+        record.update(
+            algorithm=exp.algorithm,
+            member=member,
+            checkpoint=str(checkpoint.relative_to(cfg.folder)),
+            sha256=sha256_file(checkpoint),
+            generations=exp.generations,
+        )
+        policy = load_policy(checkpoint)
+        workers = exp.num_workers
+        zoos = [cell.zoo] if cell.kind == "br" else [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
+    metrics: dict[str, dict[str, float]] = {}
+    bench_eval = 0
+    for zoo in zoos:
+        result = evaluate(policy, cell.task, zoo, episodes=cfg.eval_episodes, seeds=[EVAL_SEED + cell.seed])
+        metrics[zoo] = result.mean
+        bench_eval += int(result.records["length"].sum())
+    wall = time.perf_counter() - t0
+    budget["benchmark_eval_env_steps"] = bench_eval
+    record.update(
+        metrics=metrics,
+        budget=budget,
+        # timings of this attempt (a resumed cell: of its last attempt only); never compared across runs
+        timing={
+            "wall_s": round(wall, 1),
+            "cpu_s": round(wall * workers + time.process_time() - cpu0, 1),
+            "node": _node_id(),
+            "pid": os.getpid(),
+        },
+    )
+    return record
+
+
+def _node_id() -> str:
+    try:
+        import ray
+
+        return str(ray.get_runtime_context().get_node_id()) if ray.is_initialized() else ""
+    except Exception:  # pragma: no cover - outside Ray
+        return ""

@@ -1,0 +1,197 @@
+"""The benchmark as one resumable job: every cell over a Ray cluster, then the report, weights and MLflow.
+
+``run_benchmark`` starts (or joins, with ``address``) a Ray cluster and runs each cell
+(:mod:`atdrone.benchmark.cells`) as a Ray task on whichever node has room: a cell's own
+driver, taking no CPU itself, starting the service's coordinator, learner and rollout
+workers (``num_workers`` CPUs) there; as many cells at once as the cluster's CPUs hold
+(one at a time on a 2-core machine with 2 workers per cell). A finished cell's record is
+written atomically to ``<folder>/cells/<cell>.json``; that file is what "done" means, so
+a benchmark started again (after a kill, a crash, a lost node) runs only the cells
+without one, and an interrupted cell resumes its service run from its last generation.
+Progress: cells done / running / left and an estimate of the time left.
+
+At the end the report (:mod:`atdrone.benchmark.report`) and the kept weights
+(:mod:`atdrone.benchmark.weights`) are written to the results folder and logged, with the
+Table 2 numbers as metrics, to a parent MLflow run (experiment ``<name>``, run
+``benchmark``), whose id ``benchmark_state.json`` keeps so a resumed benchmark continues
+the same run. A folder holding a different benchmark (other methods, tasks, seeds,
+budgets) is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from atdrone.benchmark.cells import Cell, cells, run_cell
+from atdrone.benchmark.config import BenchmarkConfig
+from atdrone.fileio import atomic_write_bytes
+from atdrone.rundir import RunError, read_json
+
+log = logging.getLogger(__name__)
+STATE_FILE = "benchmark_state.json"
+CONFIG_FILE = "config.json"
+CELLS_DIR = "cells"
+
+
+def _write_json(path: Path, data: Any) -> None:
+    atomic_write_bytes(path, json.dumps(data, indent=2, sort_keys=True).encode())
+
+
+def cell_path(cfg: BenchmarkConfig, cell: Cell) -> Path:
+    return cfg.folder / CELLS_DIR / f"{cell.name}.json"
+
+
+def finished(cfg: BenchmarkConfig) -> dict[str, dict[str, Any]]:
+    """The records of the cells already done (by cell name); a record of another benchmark is not one."""
+    done = {}
+    for cell in cells(cfg):
+        path = cell_path(cfg, cell)
+        if path.is_file():
+            record = read_json(path, "cell record")
+            if record.get("benchmark") == cfg.digest() and record.get("cell") == cell.to_dict():
+                done[cell.name] = record
+    return done
+
+
+def _check_folder(cfg: BenchmarkConfig) -> None:
+    """Refuse a folder that holds another benchmark; write this one's config there."""
+    path = cfg.folder / CONFIG_FILE
+    if path.is_file():
+        saved = read_json(path, "benchmark config")
+        if saved.get("digest") != cfg.digest():
+            raise RunError(
+                f"{cfg.folder} holds a different benchmark (config digest {saved.get('digest')} != {cfg.digest()}): "
+                "run it with its own config, or give this one another name"
+            )
+    _write_json(path, {"digest": cfg.digest(), "config": cfg.to_dict()})
+
+
+def cell_cpus(cfg: BenchmarkConfig, cell: Cell) -> int:
+    """The CPUs a cell holds while it runs: its rollout workers (a floor cell: its evaluation)."""
+    if cell.kind == "floor":
+        return 1
+    from atdrone.benchmark.cells import experiment
+
+    return experiment(cfg, cell).num_workers
+
+
+def run_benchmark(
+    cfg: BenchmarkConfig,
+    address: str | None = None,
+    tracking_uri: str | None = None,
+    progress: bool = True,
+    num_cpus: int | None = None,
+) -> dict[str, Any]:
+    """Run the cells that are not done yet, then write the report; returns a summary (records, files)."""
+    from atdrone.service.driver import init_ray
+    from atdrone.tracking import Tracker, absolute_uri
+    from atdrone.tracking import tracking_uri as resolve_uri
+
+    cfg.folder.mkdir(parents=True, exist_ok=True)
+    _check_folder(cfg)
+    uri = absolute_uri(resolve_uri(tracking_uri))  # the cells' processes may run elsewhere
+    state_path = cfg.folder / STATE_FILE
+    state = read_json(state_path, "benchmark state") if state_path.is_file() else {}
+    init_ray(address, num_cpus)
+    tracker = Tracker(uri)
+    tags = {"atdrone.benchmark": cfg.name, "atdrone.benchmark_digest": cfg.digest()}
+    with tracker.run(cfg.name, "benchmark", run_id=state.get("mlflow_run_id"), tags=tags) as run_id:
+        if state.get("mlflow_run_id") != run_id:
+            _write_json(state_path, {"mlflow_run_id": run_id})
+        tracker.log_params({"benchmark": cfg.to_dict()})
+        records = _run_cells(cfg, uri, progress)
+        from atdrone.benchmark.report import table2, write_report
+        from atdrone.benchmark.weights import keep_weights
+
+        files = write_report(cfg, records)
+        manifests = keep_weights(cfg, records)
+        _log_results(tracker, cfg, records, table2)
+        for path in files.values():
+            tracker.log_artifact(path, "report")
+        for m in manifests:
+            from atdrone.resolve import weights_manifest
+
+            tracker.log_artifact(weights_manifest(cfg.results, m["method"], m["task"]), f"weights/{m['method']}")
+    if progress:
+        print(f"[{cfg.name}] report: {cfg.results / 'report.md'}; MLflow run {run_id}", flush=True)
+    return {"records": records, "files": files, "weights": manifests, "mlflow_run_id": run_id}
+
+
+def _log_results(tracker: Any, cfg: BenchmarkConfig, records: Sequence[dict[str, Any]], table2: Any) -> None:
+    from atdrone.benchmark.report import evaluations
+
+    table = table2(cfg, evaluations(records))
+    metrics = {}
+    for _, row in table.iterrows():
+        for m in ("SUC", "COL", "AST", "REW"):
+            metrics[f"{row['method']}/{row['task']}/{row['zoo']}/{m}"] = row[f"{m}_mean"]
+    tracker.log_metrics(metrics, step=0, once=True)
+
+
+def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool) -> list[dict[str, Any]]:
+    """Run every cell not yet done on the cluster, as many at once as its CPUs hold; every record, in grid
+    order. A failed cell does not stop the others; the job then fails naming it (run again to retry)."""
+    import ray
+
+    grid = cells(cfg)
+    done = finished(cfg)
+    todo = [c for c in grid if c.name not in done]
+    total_cpus = int(ray.cluster_resources().get("CPU", 1))
+    task = ray.remote(run_cell)
+    running: dict[Any, tuple[Cell, int, float]] = {}
+    failed: list[str] = []
+    walls: list[float] = []
+    if progress:
+        print(f"[{cfg.name}] {len(grid)} cells: {len(done)} done, {len(todo)} to run", flush=True)
+    shown = time.monotonic()
+    needs: dict[str, int] = {}  # CPUs per method (every cell of a method has the same workers)
+
+    def need(cell: Cell) -> int:
+        if cell.method not in needs:
+            needs[cell.method] = cell_cpus(cfg, cell)
+        return needs[cell.method]
+
+    while todo or running:
+        held = sum(c for _, c, _ in running.values())
+        while todo and (not running or held + need(todo[0]) <= total_cpus):
+            if cfg.max_parallel and len(running) >= cfg.max_parallel:
+                break
+            cell = todo.pop(0)
+            options = task.options(
+                num_cpus=1 if cell.kind == "floor" else 0, scheduling_strategy="SPREAD", name=cell.name
+            )
+            running[options.remote(cfg, cell, tracking_uri)] = (cell, need(cell), time.monotonic())
+            held += need(cell)
+        ready, _ = ray.wait(list(running), num_returns=1, timeout=10.0)
+        for ref in ready:
+            cell, _, started = running.pop(ref)
+            try:
+                record = ray.get(ref)
+            except Exception as exc:  # a cell's error, or its node lost: the others go on
+                failed.append(f"{cell.name} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})")
+                log.error("cell %s failed: %s", cell.name, exc)
+                continue
+            _write_json(cell_path(cfg, cell), record)
+            done[cell.name] = record
+            walls.append(time.monotonic() - started)
+        if progress and (ready or time.monotonic() - shown >= 60):
+            print(f"[{cfg.name}] {_progress_line(len(done), len(running), len(todo), walls, total_cpus)}", flush=True)
+            shown = time.monotonic()
+    if failed:
+        raise RunError(f"{len(failed)} cell(s) failed: {'; '.join(failed)}; run the benchmark again to retry them")
+    return [done[c.name] for c in grid]
+
+
+def _progress_line(done: int, running: int, left: int, walls: Sequence[float], cpus: int) -> str:
+    """``cells: 3 done, 1 running, 6 left; about 4 min left`` (from this invocation's cell times)."""
+    line = f"cells: {done} done, {running} running, {left} left"
+    if walls and (running or left):
+        per_cell = sum(walls) / len(walls)
+        at_once = max(1, running)
+        line += f"; about {per_cell * (left + running) / at_once / 60:.1f} min left"
+    return line
