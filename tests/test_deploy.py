@@ -355,20 +355,21 @@ class Chase:
 
 
 def held_at_an_evader_without_capture(frame: pd.DataFrame, near: float = 0.55) -> int:
-    """Ticks on the policy legs where the separation rule held a flying evader drone and a pursuer within
-    ``near`` of it, and the evader did not begin to land (its capture) within the next two ticks."""
+    """Ticks on the policy legs where the separation rule held a flying evader drone together with a pursuer
+    (the log's ``pair:`` note) within ``near`` of it, and the evader did not begin to land (its capture) within
+    the next two ticks."""
     legs = frame[frame.step >= 0]
     grid = legs.pivot_table(index=["episode", "step"], columns="drone", values=["x", "y"])
-    held = legs.assign(h=legs.events.str.contains("separation")).pivot_table(
-        index=["episode", "step"], columns="drone", values="h", aggfunc="any"
-    )
     state = legs.pivot_table(index=["episode", "step"], columns="drone", values="state", aggfunc="first")
     roles = legs.groupby("drone").role.first()
     count = 0
     for e in roles.index[roles == "evader"]:
         for p in roles.index[roles != "evader"]:
             d = np.hypot(grid["x"][e] - grid["x"][p], grid["y"][e] - grid["y"][p])
-            both = held[e].fillna(False) & held[p].fillna(False) & (d <= near) & (state[e] == "flying")
+            mine = legs[legs.drone == e]
+            held = mine.events.str.split(",").apply(lambda ev, p=p: f"pair:{p}" in ev)
+            together = held.groupby([mine.episode, mine.step]).any().reindex(d.index, fill_value=False)
+            both = together & (d <= near) & (state[e] == "flying")
             for episode, step in both.index[both.to_numpy(bool)]:
                 later = state[e].loc[episode].loc[step + 1 : step + 2]
                 count += not (later == "landing").any()

@@ -125,6 +125,39 @@ def test_vicsek_chases_the_nearest_evader_when_no_teammate_is_close():
     assert 0.4 < act0(VicsekPolicy(), batch) < 0.9
 
 
+def test_noisy_vicsek_turns_the_wanted_heading_by_its_keys_draw():
+    """The Vicsek model's angular noise: the wanted heading plus noise * (u - 1/2), u the key's uniform draw,
+    the same for the same key (whatever else shares the batch), none at noise 0, and the policy's own generator
+    without keys (a deploy)."""
+    from dataclasses import replace
+
+    from atdrone.envs.streams import fold, unit
+    from atdrone.policies.rules import NOISE_DRAW
+
+    p0 = (1.8, 1.0)
+    batch = scene(p0, UP, [polar(p0, 0.8, UP + np.deg2rad(30)), (3.0, 4.6)])
+    pure = {"cohesion": 0.0, "alignment": 0.0}
+    noise = np.deg2rad(20.0)
+    turns = []
+    for key in range(1, 41):
+        keys = np.full(len(batch), key, dtype=np.uint64)
+        u = float(unit(fold(keys, NOISE_DRAW))[0])
+        want = 30.0 + np.rad2deg(noise) * (u - 0.5)  # degrees left of the nose: inside the 45-degree limit
+        got = act0(VicsekPolicy(noise=noise, **pure), replace(batch, keys=keys))
+        assert got == pytest.approx(want / 45), key
+        assert act0(VicsekPolicy(noise=0.0, **pure), replace(batch, keys=keys)) == pytest.approx(30 / 45)
+        turns.append(got * 45 - 30)
+    assert max(turns) - min(turns) > 15.0  # the draws spread over most of the 20 degrees
+    same = np.full(len(batch), 5, dtype=np.uint64)
+    assert act0(VicsekPolicy(noise=noise), replace(batch, keys=same)) == act0(
+        VicsekPolicy(noise=noise), replace(batch, keys=same)
+    )
+    own = [act0(VicsekPolicy(noise=noise, **pure), batch) for _ in range(2)]  # no keys: a fresh generator each
+    assert own[0] == own[1] != pytest.approx(30 / 45)
+    with pytest.raises(ValueError, match="noise"):
+        VicsekPolicy(noise=-0.1)
+
+
 def test_vicsek_turns_away_from_a_close_teammate_instead_of_chasing():
     p0, evaders = (1.8, 1.5), [(1.8, 4.0), (0.4, 4.6)]
     right = scene(p0, UP, evaders, mates=[polar(p0, 0.1, UP - np.deg2rad(45)), *PARKED[1:]])

@@ -6,8 +6,9 @@ directory together, every file written atomically (a temp name, then a rename):
 - ``flight.parquet``: per tick and drone: ``t`` (clock seconds since the flight started),
   ``episode``, ``step`` (-1 while the high-level commander flies), ``drone``, ``role``,
   ``x, y, z, yaw`` (measured, arena frame; NaN unknown), ``setpoint_x, setpoint_y,
-  setpoint_z``, ``state`` (:data:`FLIGHT_STATES`), ``events`` (comma-joined shield rules
-  and ``fault:KIND`` notes, "" for none), ``battery`` (V) and ``latency_STAGE`` (seconds;
+  setpoint_z``, ``state`` (:data:`FLIGHT_STATES`), ``events`` (comma-joined shield rules,
+  ``fault:KIND`` notes and a ``pair:DRONE`` note per drone the separation rule held it
+  with, "" for none), ``battery`` (V) and ``latency_STAGE`` (seconds;
   NaN on ticks without that stage).
 - ``episodes.parquet``: ``episode, outcome, steps, captured, reward, virtual_evaders``.
 - ``meta.json``: the config summary given to the log, the tick overruns and the arena
@@ -40,6 +41,8 @@ OUTCOMES = ("captured", "collision", "timeout", "shield", "aborted")
 LATENCY_STAGES = ("mocap_age", "observe", "policy", "shield", "send", "tick")  # the usual order; others follow
 PERCENTILES = (50, 95, 99)
 GIF_FRAMES = 60
+PAIR = "pair:"  # an events note: the separation rule held this drone together with the named one
+NOTES = ("fault:", PAIR)  # events that are notes, not shield rules
 EXPERIMENT = "atdrone-deploy"
 FILES = ("flight.parquet", "episodes.parquet", "meta.json", "summary.json", "trajectories.png", "flight.gif")
 ROLE_COLORS = {"learner": "#1f5fbf", "partner": "#2a9d3a", "evader": "#d62728"}
@@ -305,7 +308,7 @@ def summarize(directory: Path) -> dict[str, Any]:
     events = flight["events"].astype(str).str.split(",").explode()
     events = events[events != ""]
     faults = events[events.str.startswith("fault:")]
-    rules = events[~events.str.startswith("fault:")]
+    rules = events[~events.str.startswith(NOTES)]
     t = flight["t"].to_numpy(np.float64)
     battery = physical.groupby("drone", sort=True)["battery"].min()
     summary: dict[str, Any] = {
@@ -487,7 +490,7 @@ def plot_trajectories(flight: pd.DataFrame, geometry: Mapping[str, Any], path: P
             ax.annotate(str(name), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=7)
         events = flight[flight["events"].astype(str) != ""]
         fault = events["events"].str.contains("fault:")
-        shield_rows = events[events["events"].str.replace(r"fault:\w+", "", regex=True).str.strip(",") != ""]
+        shield_rows = events[events["events"].str.replace(r"(fault|pair):[^,]*", "", regex=True).str.strip(",") != ""]
         if len(shield_rows):
             ax.scatter(shield_rows.x, shield_rows.y, marker="x", color="black", s=22, zorder=8, label="shield")
         if fault.any():

@@ -45,7 +45,7 @@ from atdrone.config import TaskConfig
 from atdrone.deploy.bridge import Bridge
 from atdrone.deploy.clock import Clock, Ticker
 from atdrone.deploy.config import DeployConfig
-from atdrone.deploy.flightlog import FlightLog
+from atdrone.deploy.flightlog import PAIR, FlightLog
 from atdrone.deploy.mocap import MocapSource, Pose
 from atdrone.deploy.shield import (
     HOLD_MARGIN,
@@ -626,6 +626,11 @@ class Flight:
             self._log_tick(tick, steps, pos, yaw, decision, lat, ref_e if not self.evader_drones else None)
             steps += 1
         self.episode_done = outcome != "shield"
+        if self.episode_done and not self.aborted:
+            # the last tick's setpoints were not sent (the outcome came first) and those before carry the
+            # policy's velocity: the firmware settles kd / kp * v past a stale setpoint (0.11 m at 0.22 m/s),
+            # so the drones are held here, at zero velocity, before the log is written and the next leg planned
+            self._hold_tick()
         self.log.episode(
             self.episode,
             outcome,
@@ -865,6 +870,9 @@ class Flight:
         everyone = events.pop("", [])
         for e in decision.events:
             events.setdefault(e.drone, []).append(e.rule)
+        for a, b in decision.pairs if decision.pairs is not None else ():  # whom the separation rule held it with
+            events.setdefault(decision.names[a], []).append(f"{PAIR}{decision.names[b]}")
+            events.setdefault(decision.names[b], []).append(f"{PAIR}{decision.names[a]}")
         for i, n in enumerate(self.names):
             self.log.tick(
                 t=t - self.t0,

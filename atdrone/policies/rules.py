@@ -16,7 +16,11 @@ import numpy as np
 from atdrone.envs.geometry import pick_nearest, signed_distances
 from atdrone.envs.kinematics import MAX_TURN, turn_towards, wrap_angle
 from atdrone.envs.observation import DIST_SCALE, ENTITY_FEATURES
+from atdrone.envs.streams import fold, unit
 from atdrone.policies.base import DroneBatch, StatelessPolicy
+
+
+NOISE_DRAW = 7  # the counter a noisy VICSEK drone folds into its key (a neural drone's draws use 0 and 1)
 
 
 @dataclass(frozen=True)
@@ -145,8 +149,12 @@ class VicsekPolicy(StatelessPolicy):
         obstacle_gain: float = 4.0,
         cohesion: float = 0.1,
         alignment: float = 0.1,
+        noise: float = 0.0,
     ) -> None:
-        self.chase, self.cohesion, self.alignment = chase, cohesion, alignment
+        if not 0.0 <= noise <= 2 * np.pi:
+            raise ValueError(f"vicsek noise must be an angle in [0, 2 pi] radians, got {noise}")
+        self.chase, self.cohesion, self.alignment, self.noise = chase, cohesion, alignment, noise
+        self.generator = np.random.default_rng(0)
         self.mate_range, self.mate_gain = mate_range, mate_gain
         self.obstacle_range, self.obstacle_gain = obstacle_range, obstacle_gain
 
@@ -168,7 +176,11 @@ class VicsekPolicy(StatelessPolicy):
         mh = np.where(finite, sc.mate_heading, 0.0)
         align = np.stack([(np.cos(mh) * finite).sum(-1), (np.sin(mh) * finite).sum(-1)], -1)
         v += self.alignment * align / np.maximum(n_mates, 1)
-        return turn_towards(sc.heading, np.arctan2(v[:, 1], v[:, 0]))
+        want = np.arctan2(v[:, 1], v[:, 0])
+        if self.noise > 0.0:
+            u = self.generator.random(len(want)) if batch.keys is None else unit(fold(batch.keys, NOISE_DRAW))
+            want = want + self.noise * (u - 0.5)
+        return turn_towards(sc.heading, want)
 
 
 _TURNS = np.linspace(-1.0, 1.0, 17)  # candidate actions of chase_nearest's safety filter
