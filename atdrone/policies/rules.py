@@ -19,7 +19,6 @@ from atdrone.envs.observation import DIST_SCALE, ENTITY_FEATURES
 from atdrone.envs.streams import fold, unit
 from atdrone.policies.base import DroneBatch, StatelessPolicy
 
-
 NOISE_DRAW = 7  # the counter a noisy VICSEK drone folds into its key (a neural drone's draws use 0 and 1)
 
 
