@@ -140,7 +140,7 @@ def add_render(subparsers: Any) -> argparse.ArgumentParser:
         help=f"task name ({', '.join(TASK_NAMES)}) or JSON path (default: the policy's task, else 4p2e5o)",
     )
     p.add_argument("--policy", default=None, help=f"{POLICY_HELP} (default: built-in chase)")
-    p.add_argument("--zoo", default=None, help="fill the partner slots from this zoo (zoo1, zoo2, zoo3 or a JSON path)")
+    p.add_argument("--zoo", default=None, help="fill the partner slots from this zoo (zoo1-zoo4, validation, a path)")
     p.add_argument("--out", type=Path, default=None, help="GIF path, *.gif (default: <task>.gif)")
     p.add_argument("--png", type=Path, default=None, help="also save the first frame as this PNG, *.png")
     _add_episode_args(p)
@@ -420,7 +420,7 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
         default=None,
         help=f"task name ({', '.join(TASK_NAMES)}), JSON path, or all (default: the policy's task, else 4p2e1o)",
     )
-    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
+    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1-zoo4, validation), JSON path, or all (zoo1-zoo4)")
     p.add_argument(
         "--episodes", type=_episodes, default=500, help=f"episodes per seed and cell, <= {MAX_EPISODES:,} (default 500)"
     )

@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         "or a zoo member",
     )
     p.add_argument("--task", default="4p2e1o", help="task name (4p2e1o, 4p2e3o, 4p2e5o, 4p3e5o), JSON path, or all")
-    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1, zoo2, zoo3), JSON path, or all")
+    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1-zoo4, validation), JSON path, or all (zoo1-zoo4)")
     p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default: 0)")
     p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")

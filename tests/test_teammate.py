@@ -18,7 +18,7 @@ from atdrone.learn.rollout import RolloutWorker
 from atdrone.models.teammate import TeammateActorCritic, TeammateConfig
 from atdrone.policies.base import DroneBatch, StatelessPolicy
 from atdrone.policies.rules import GreedyPolicy
-from atdrone.policies.zoo import ZOO_NAMES, load_zoo
+from atdrone.policies.zoo import ZOO_NAMES, checkpoint_path, load_zoo
 from atdrone.service.experiment import load_experiment
 from atdrone.teams.partners import LEARNER_COPY, VariableCount
 from atdrone.teams.pools import check_pool, load_pool, shared_members
@@ -264,3 +264,20 @@ def test_the_committed_validation_zoo_and_training_pool_share_no_drone_with_a_te
     assert shared_members(load_zoo("validation")) == []
     assert shared_members(load_pool("train_pool"), (*ZOO_NAMES, "validation")) == []
     assert any(m.kind == "checkpoint" for m in load_zoo("validation").spec.members)  # trained drones, not rules only
+
+
+def test_zoo4_is_held_out_and_not_made_by_the_zoo2_recipe():
+    """Zoo 4 shares no drone with Zoos 1-3, the validation zoo or the default pool; its trained drones each differ
+    from Zoo 2's recipe (IPPO self-play, default PPO) in mode, critic or PPO settings."""
+    from atdrone.models.checkpoint import read_header
+
+    zoo4 = load_zoo("zoo4")
+    assert not zoo4.missing
+    assert shared_members(zoo4, ("zoo1", "zoo2", "zoo3", "validation")) == []
+    assert shared_members(load_pool("train_pool"), ("zoo4",)) == []
+    trained = [m for m in zoo4.spec.members if m.kind == "checkpoint"]
+    assert len(trained) == 5 and len(zoo4.spec.members) == 7
+    for m in trained:
+        cfg = read_header(checkpoint_path(m))["config"]
+        assert cfg["mode"] != "self_play" or cfg["ppo"] or cfg.get("centralised_critic"), (m.name, cfg)
+    assert {m.params.get("noise", 0.0) > 0 for m in zoo4.spec.members if m.kind == "vicsek"} == {True}

@@ -19,7 +19,7 @@ from atdrone.errors import UserError
 from atdrone.policies.base import Policy, PolicyError
 from atdrone.policies.rules import GreedyPolicy, VicsekPolicy
 
-ZOO_NAMES = ("zoo1", "zoo2", "zoo3")  # the unseen (test) zoos of the benchmark
+ZOO_NAMES = ("zoo1", "zoo2", "zoo3", "zoo4")  # the unseen (test) zoos: the paper's three and the diverse Zoo 4
 VALIDATION_ZOO = "validation"  # partners for selection only: shares no drone with ZOO_NAMES
 RULES: dict[str, type] = {"greedy": GreedyPolicy, "vicsek": VicsekPolicy}
 
@@ -145,7 +145,7 @@ def policy_from_spec(spec: str | Path) -> Policy:
 
 
 def load_zoo(name_or_path: str | Path | dict[str, Any]) -> Zoo:
-    """Load a zoo by name (zoo1, zoo2, zoo3, validation), path or mapping; ConfigError when invalid."""
+    """Load a zoo by name (zoo1-zoo4, validation), path or mapping; ConfigError when invalid."""
     names = (*ZOO_NAMES, VALIDATION_ZOO)
     doc = name_or_path if isinstance(name_or_path, dict) else read_document(name_or_path, "zoos", names)
     spec = parse_document(ZooSpec, doc)

@@ -12,7 +12,7 @@ from atdrone.teams.partners import Uniform
 
 @dataclass(frozen=True)
 class BestResponseConfig:
-    """zoo: the partners to respond to (zoo1, zoo2, zoo3 or a zoo JSON path)."""
+    """zoo: the partners to respond to (zoo1-zoo4 or a zoo JSON path)."""
 
     zoo: str
 
