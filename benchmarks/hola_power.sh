@@ -1,0 +1,15 @@
+#!/bin/bash
+# Issue 22's powered test of the paper's claim on 4p2e5o: HOLA-Drone V2, w/o g, SP and
+# FCP-style Pi_0-only (a learner trained against a frozen pool of 2 self-play seeds x 2 skill
+# levels, HOLA's Pi_0 recipe), 8 seeds each at 1,048,576 env steps per run, every final
+# learner evaluated with 2,000 episodes on each of Zoos 1-4, paired differences against SP
+# and w/o g. Some 4-5 hours of the shared 2-core machine: run it in chunks, each run of this
+# script continues where the last stopped (finished runs and evaluations are kept).
+#   nohup nice -n 19 benchmarks/hola_power.sh > reports/hola_power.log 2>&1 &
+set -e
+cd "$(dirname "$0")/.."
+exec .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o \
+  --algorithms hola hola_no_g sp fcp --fcp-seeds 2 --fcp-levels 2 \
+  --seeds 0 1 2 3 4 5 6 7 --episodes 2000 --zoos zoo1 zoo2 zoo3 zoo4 \
+  --references sp hola_no_g --title "HOLA-Drone V2 with the power to decide (issue 22)" \
+  --out reports/hola_power --results benchmarks/results/hola_power --resume "$@"
