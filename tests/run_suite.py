@@ -5,9 +5,7 @@ scaled clock and mostly wait for it (about a third of a core); the rest (Ray, tr
 evaluation) is CPU-bound. So the flights run as their own pytest session at normal
 priority while the rest runs on two xdist workers at ``nice`` +15: the flights get the CPU
 when their clock needs it (their loop is never starved by a Ray test, as it could be on a
-shared worker), and the waiting is no longer added to the suite's time. Once the flights
-are done, their lane runs the benchmark's kill/resume and two-node tests (over two minutes
-of Ray) at ``nice`` +15, so the main session does not end on them. A command given
+shared worker), and the waiting is no longer added to the suite's time. A command given
 with ``--beside`` (``make test``: the type check, half a minute of one core from a fresh
 clone) runs at the same time, at ``nice`` +15 too.
 
@@ -30,9 +28,6 @@ from pathlib import Path
 from typing import IO
 
 FLIGHTS = ("tests/test_deploy.py", "tests/test_simfleet.py")
-# after the flights, in their lane at nice +15: the benchmark's kill/resume and two-node tests (over two minutes
-# of Ray on one worker), which the main session would otherwise end on while the flights' lane sits idle
-AFTER_FLIGHTS = ("tests/test_benchmark.py", "tests/test_benchmark_cluster.py")
 # CFS weights: a nice 0 thread 1024, nice 15 36; the main session runs some 20 processes (two Ray sessions),
 # so at +5 (335 each) a flight thread could get as little as an eighth of a core; at +15 it gets what it asks
 NICE = 15
@@ -54,29 +49,7 @@ def _niced() -> None:
     os.nice(NICE)
 
 
-def _lane(tmp: str, args: list[str]) -> int:
-    """The flights' lane: the flights at this process's priority, then :data:`AFTER_FLIGHTS` at nice +15."""
-    pytest = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
-    root = Path(__file__).resolve().parent.parent
-    statuses = []
-    for name, files, nice in (("base", FLIGHTS, False), ("after", AFTER_FLIGHTS, True)):
-        if name == "after":
-            print(f"\n---- then {', '.join(AFTER_FLIGHTS)} ----", flush=True)
-        proc = subprocess.Popen(
-            [*pytest, "--basetemp", str(Path(tmp) / name), *files, *args], cwd=root, preexec_fn=_niced if nice else None
-        )
-        try:
-            statuses.append(proc.wait())
-        except KeyboardInterrupt:  # Ctrl-C of the whole suite: stop this session too, not leave it running
-            proc.send_signal(signal.SIGINT)
-            proc.wait()
-            return 130
-    return next((s for s in statuses if s), 0)
-
-
 def main(argv: list[str]) -> int:
-    if argv[:1] == ["--lane"]:
-        return _lane(argv[1], argv[2:])
     root = Path(__file__).resolve().parent.parent
     beside, args = _split(argv)
     pytest = [sys.executable, "-m", "pytest", "-q"]
@@ -94,15 +67,15 @@ def main(argv: list[str]) -> int:
             )
 
         start(
-            f"the simulated flights ({', '.join(FLIGHTS)}), then {', '.join(AFTER_FLIGHTS)}",
-            [sys.executable, str(Path(__file__).resolve()), "--lane", tmp, *args],
+            "the simulated flights (tests/test_deploy.py, tests/test_simfleet.py)",
+            [*pytest, "-p", "no:cacheprovider", "--basetemp", str(Path(tmp) / "base"), *FLIGHTS, *args],
             "flights.log",
             nice=False,
         )
         for i, command in enumerate(beside):
             start(command, shlex.split(command), f"beside{i}.log", nice=True)
         rest = subprocess.Popen(
-            [*pytest, "-n", "2", "--dist", "loadgroup", *(f"--ignore={f}" for f in (*FLIGHTS, *AFTER_FLIGHTS)), *args],
+            [*pytest, "-n", "2", "--dist", "loadgroup", *(f"--ignore={f}" for f in FLIGHTS), *args],
             cwd=root,
             preexec_fn=_niced,
         )
