@@ -31,20 +31,6 @@ _RAY_MODULES = (
 _FLIGHT_MODULES = ("test_deploy", "test_simfleet")
 
 
-# The Ray modules' measured time on one worker, longest first (seconds, `--durations`, 2026-11-26): xdist hands
-# out work in collection order, so these go first and the many short tests fill the gaps after them (the
-# longest-first rule), instead of a four-minute module starting last while the other worker runs dry
-_LONGEST_FIRST = (
-    "test_service",  # ~270
-    "test_faults",  # ~270
-    "test_teammate_service",  # ~140
-    "test_benchmark",  # ~90
-    "test_benchmark_cluster",  # ~60
-    "test_jobs",  # ~50
-    "test_hardening",  # ~50
-)
-
-
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         module = item.path.stem
@@ -52,8 +38,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.xdist_group(module))
         elif module in _FLIGHT_MODULES:
             item.add_marker(pytest.mark.xdist_group("flight"))
-    rank = {m: i for i, m in enumerate(_LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: the rest keep their order
 
 
 @pytest.fixture(autouse=True)
