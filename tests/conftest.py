@@ -152,3 +152,27 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         import matplotlib.pyplot as plt
 
         plt.close("all")
+
+
+TINY_BENCHMARK_PPO = {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16}
+
+
+def tiny_benchmark(tmp_path: Path, name: str) -> dict[str, Any]:
+    """A benchmark config of one method, one task, two seeds, one update per run, no best responses: two training
+    cells and a floor, one at a time (the benchmark tests')."""
+    return {
+        "name": name,
+        "tasks": ["4p2e1o"],
+        "seeds": [0, 1],
+        "zoos": ["zoo1"],
+        "env_steps": 128,
+        "updates_per_generation": 1,
+        "eval_episodes": 4,
+        "bootstrap_reps": 50,
+        "best_response": False,
+        "max_parallel": 1,
+        "methods": {"sp": {"experiment": "sp_quick"}},
+        "experiment": {"num_workers": 1, "eval_episodes": 4, "ppo": TINY_BENCHMARK_PPO},
+        "out_dir": str(tmp_path / "bench"),
+        "results_dir": str(tmp_path / "results" / name),
+    }

@@ -16,34 +16,13 @@ from typing import Any
 
 import mlflow
 import pandas as pd
+from conftest import tiny_benchmark
 
 from atdrone.benchmark.cells import load_benchmark
 from atdrone.benchmark.job import STATE_FILE, run_benchmark
 
 REPO = Path(__file__).resolve().parent.parent
-TINY_PPO = {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16}
 CSVS = ("evaluations", "table", "paired", "normalised", "aggregate", "improvement")
-
-
-def tiny(tmp_path: Path, name: str) -> dict[str, Any]:
-    """One method, one task, two seeds, one update per run, no best responses: two training cells and a floor,
-    one at a time."""
-    return {
-        "name": name,
-        "tasks": ["4p2e1o"],
-        "seeds": [0, 1],
-        "zoos": ["zoo1"],
-        "env_steps": 128,
-        "updates_per_generation": 1,
-        "eval_episodes": 4,
-        "bootstrap_reps": 50,
-        "best_response": False,
-        "max_parallel": 1,
-        "methods": {"sp": {"experiment": "sp_quick"}},
-        "experiment": {"num_workers": 1, "eval_episodes": 4, "ppo": TINY_PPO},
-        "out_dir": str(tmp_path / "bench"),
-        "results_dir": str(tmp_path / "results" / name),
-    }
 
 
 def _driver(doc: dict[str, Any], tmp_path: Path, address: str, uri: str) -> subprocess.Popen[bytes]:
@@ -68,7 +47,7 @@ def test_a_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_un
     local_ray, tmp_path, mlflow_store, capsys
 ):
     uri = mlflow_store(tmp_path / "mlflow.db")
-    whole, killed = tiny(tmp_path, "whole"), tiny(tmp_path, "killed")
+    whole, killed = tiny_benchmark(tmp_path, "whole"), tiny_benchmark(tmp_path, "killed")
     reference = _driver(whole, tmp_path, local_ray, uri)  # beside the killed one: one CPU each
     victim = _driver(killed, tmp_path, local_ray, uri)
     folder = tmp_path / "bench" / "killed"

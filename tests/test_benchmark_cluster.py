@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from conftest import tiny_benchmark
+
 REPO = Path(__file__).resolve().parent.parent
 DRIVER = """
 import json, os, sys
@@ -34,22 +36,8 @@ finally:
 
 
 def test_a_benchmark_on_two_nodes_runs_a_cell_on_each(tmp_path, mlflow_store):
-    ppo = {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16}
-    doc = {
-        "name": "two_nodes",
-        "tasks": ["4p2e1o"],
-        "seeds": [0, 1],
-        "zoos": ["zoo1"],
-        "env_steps": 128,
-        "updates_per_generation": 1,
-        "eval_episodes": 4,
-        "bootstrap_reps": 50,
-        "best_response": False,
-        "methods": {"sp": {"experiment": "sp_quick"}},
-        "experiment": {"num_workers": 1, "eval_episodes": 4, "ppo": ppo},
-        "out_dir": str(tmp_path / "bench"),
-        "results_dir": str(tmp_path / "results"),
-    }
+    doc = tiny_benchmark(tmp_path, "two_nodes")
+    del doc["max_parallel"]  # cells as many at once as the cluster's CPUs allow: one on each node
     uri = mlflow_store(tmp_path / "mlflow.db")
     done = subprocess.run(
         [sys.executable, "-c", DRIVER, json.dumps(doc), uri], cwd=REPO, capture_output=True, text=True, timeout=400

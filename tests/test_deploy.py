@@ -393,6 +393,8 @@ def test_pursuers_steered_at_evader_drones_capture_them_and_every_pair_stays_apa
     assert episodes.captured.iloc[0] >= 1, episodes  # the second episode's (re)start is checked below
     frame = ticks(result)
     assert min_scaled_separation(frame) >= 1.0  # pursuers and evader drones alike, captures included
+    separated = frame[frame.events.str.contains("separation")]
+    assert len(separated) and separated.events.str.contains("pair:").all()  # whom each was held with is logged
     assert held_at_an_evader_without_capture(frame) == 0
     # while a captured evader drone took off again, the drones in the air kept their setpoints and altitude
     retook = frame[(frame.episode == 1) & (frame.step < 0) & (frame.state == "taking_off")]
