@@ -11,12 +11,10 @@ $(BIN)/python:
 	$(BIN)/pip install --upgrade pip -q
 
 # torch first and pinned: 2.13.0 is the CPU build on this machine's disk; then everything else
-# at the versions of constraints.txt, the resolved set the tests passed with. --no-compile: Python
-# compiles a module when it is first imported (a few hundred of them), not every file of every
-# package at install (66 s -> 26 s from a fresh clone)
+# at the versions of constraints.txt, the resolved set the tests passed with
 $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
-	$(BIN)/pip install -q --no-compile torch==2.13.0
-	$(BIN)/pip install -q --no-compile -c constraints.txt -e ".[dev,deploy]"
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -c constraints.txt -e ".[dev,deploy]"
 	touch $(STAMP)
 
 install: $(STAMP)
