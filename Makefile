@@ -11,10 +11,14 @@ $(BIN)/python:
 	$(BIN)/pip install --upgrade pip -q
 
 # torch first and pinned: 2.13.0 is the CPU build on this machine's disk; then everything else
-# at the versions of constraints.txt, the resolved set the tests passed with
+# at the versions of constraints.txt, the resolved set the tests passed with. pip byte-compiles one
+# file at a time; compileall does the same files on every core (62 s -> 44 s from a fresh clone). The
+# byte code must be there: where PYTHONDONTWRITEBYTECODE is set nothing imported is ever cached.
+# A file that does not compile is skipped, as pip skips it (torch ships one in Python 3.12 syntax)
 $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
-	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -c constraints.txt -e ".[dev,deploy]"
+	$(BIN)/pip install -q --no-compile torch==2.13.0
+	$(BIN)/pip install -q --no-compile -c constraints.txt -e ".[dev,deploy]"
+	$(BIN)/python -m compileall -q -j 0 $(VENV)/lib > /dev/null || true
 	touch $(STAMP)
 
 install: $(STAMP)
