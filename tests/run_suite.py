@@ -52,6 +52,9 @@ def _niced() -> None:
 def main(argv: list[str]) -> int:
     root = Path(__file__).resolve().parent.parent
     beside, args = _split(argv)
+    # byte code cached: some 200 processes import atdrone (Ray workers, drivers, the CLI); with
+    # PYTHONDONTWRITEBYTECODE set (as on this machine) each compiled its modules again, 0.15 s apiece
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
     pytest = [sys.executable, "-m", "pytest", "-q"]
     with tempfile.TemporaryDirectory(prefix="atdrone-flights-") as tmp:
         logs: list[tuple[str, IO[str]]] = []
