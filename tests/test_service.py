@@ -464,32 +464,34 @@ def test_a_selection_zoo_sharing_drones_with_a_test_zoo_is_refused(tmp_path, zoo
 
 
 def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path, monkeypatch, mlflow_store):
-    """A run whose test-zoo results are replaced by planted ones, each preferring another member: the best
-    member and the MLflow champion are those of the (real) validation results every time."""
+    """A run whose test-zoo results are replaced by planted ones that rank every member above the one the
+    (real) validation results choose: the best member and the MLflow champion are still the validation's."""
     real = driver._evaluate_population
     planted: dict[str, float] = {}
 
     def evaluate(coordinator, zoo, episodes):
         results = real(coordinator, zoo, episodes)
-        if zoo == "zoo3":  # the test zoo says what the plant says
+        if zoo == "zoo3":  # the test zoo prefers every member but the validation's choice
+            validation = real(coordinator, "validation", episodes)  # the same episodes the run plays
+            table = pd.DataFrame(
+                [{"member": m, **{f"validation_{k}": v for k, v in r.items()}} for m, r in validation.items()]
+            )
+            best, _ = select_best(table, "validation", list(validation))
+            planted.update({m: (5.0 if m == best else 95.0) for m in results})
             for member, row in results.items():
                 row["SUC"], row["REW"] = planted[member], planted[member]
         return results
 
     monkeypatch.setattr(driver, "_evaluate_population", evaluate)
-    members = ["sp-g0-0", "sp-g1-0", "sp-g2-0"]
-    chosen = []
-    for k, favourite in enumerate(members):
-        planted.clear()
-        planted.update({m: (95.0 if m == favourite else 5.0) for m in members})
-        uri = mlflow_store(tmp_path / f"mlflow{k}.db")
-        cfg = _cfg(tmp_path / str(k), "sel", algorithm="sp", generations=3, final_zoo="zoo3", final_episodes=16)
-        summary = run_experiment(cfg, tracking_uri=uri, progress=False)
-        population = pd.read_csv(tmp_path / str(k) / "sel" / "population.csv")
-        assert population["zoo3_SUC"].tolist() == [planted[m] for m in population["member"]]  # the plant took
-        expected, score = select_best(population.drop(columns=["zoo3_SUC", "zoo3_REW"]), "validation", members)
-        champion = mlflow.MlflowClient(uri).get_model_version_by_alias("atdrone-sel", "champion")
-        assert summary["best"] == champion.tags["member"] == expected
-        assert champion.tags["score_metric"] == "validation_SUC" and float(champion.tags["score"]) == score
-        chosen.append(summary["best"])
-    assert len(set(chosen)) == 1  # three different test-zoo favourites, one champion
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    cfg = _cfg(tmp_path, "sel", algorithm="sp", generations=3, final_zoo="zoo3", final_episodes=16)
+    summary = run_experiment(cfg, tracking_uri=uri, progress=False)
+    population = pd.read_csv(tmp_path / "sel" / "population.csv")
+    assert population["member"].tolist() == ["sp-g0-0", "sp-g1-0", "sp-g2-0"]
+    assert population["zoo3_SUC"].tolist() == [planted[m] for m in population["member"]]  # the plant took
+    assert sorted(planted.values()) == [5.0, 95.0, 95.0]
+    expected, score = select_best(population.drop(columns=["zoo3_SUC", "zoo3_REW"]), "validation", list(planted))
+    champion = mlflow.MlflowClient(uri).get_model_version_by_alias("atdrone-sel", "champion")
+    assert summary["best"] == champion.tags["member"] == expected
+    assert planted[expected] == 5.0  # the test zoo's last choice
+    assert champion.tags["score_metric"] == "validation_SUC" and float(champion.tags["score"]) == score
