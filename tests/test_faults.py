@@ -284,18 +284,25 @@ class _EndsItsReader:
         return os._exit, (3,)
 
 
-def test_a_worker_that_keeps_dying_fails_the_training_naming_it_and_the_cap_instead_of_hanging(local_ray):
-    """Worker 1's job kills every process it reaches; Ray restarts the worker WORKER_RESTARTS times and then gives
-    up, so run_updates (a generation's training) ends with an error naming worker 1 and the cap, in bounded time.
-    Without the cap (max_restarts=-1) the worker restarts forever and the training never ends: the test fails."""
+def test_a_worker_that_keeps_dying_fails_the_training_naming_it_and_the_cap_instead_of_hanging(local_ray, monkeypatch):
+    """Worker 1's job kills every process it reaches; Ray restarts the worker as often as its cap allows and then
+    gives up, so run_updates (a generation's training) ends with an error naming worker 1 and the cap, in bounded
+    time. Without a cap (max_restarts=-1) the worker restarts forever and the training never ends: the test fails.
+    The workers here are capped at 2 restarts (each costs a process start); the service's class is capped at
+    WORKER_RESTARTS, checked on its options."""
     import threading
 
+    from atdrone.service import actors
     from atdrone.service.actors import WORKER_RESTARTS, LearnerActor, run_updates
 
+    assert RolloutWorkerActor._default_options["max_restarts"] == WORKER_RESTARTS > 0
+    assert RolloutWorkerActor._default_options["max_task_retries"] == WORKER_RESTARTS
+    cap = 2
+    monkeypatch.setattr(actors, "WORKER_RESTARTS", cap)  # what the error names
     job, _ = _job()
     spec = LearnerSpec(ppo=job.ppo, num_e=2, num_p=4, seed=0, total_updates=1)
     learner = LearnerActor.remote(spec)
-    workers = [RolloutWorkerActor.remote(TASK) for _ in range(2)]
+    workers = [RolloutWorkerActor.options(max_restarts=cap, max_task_retries=cap).remote(TASK) for _ in range(2)]
     outcome: list[BaseException | None] = []
 
     def train() -> None:
@@ -308,7 +315,7 @@ def test_a_worker_that_keeps_dying_fails_the_training_naming_it_and_the_cap_inst
     thread = threading.Thread(target=train, daemon=True)
     try:
         thread.start()
-        thread.join(timeout=150)  # 8 restarts took 39 s on a 2-core machine under a load of 20
+        thread.join(timeout=150)  # 8 restarts took 39 s on a 2-core machine under a load of 20; 2 take a quarter
         assert not thread.is_alive(), "the training still waits on a worker that keeps dying: restarts not capped"
     finally:
         for actor in (*workers, learner):
@@ -316,4 +323,4 @@ def test_a_worker_that_keeps_dying_fails_the_training_naming_it_and_the_cap_inst
     (error,) = outcome
     assert error is not None
     message = str(error)
-    assert "rollout worker 1" in message and f"restarted {WORKER_RESTARTS} times" in message, message
+    assert "rollout worker 1" in message and f"restarted {cap} times" in message, message
