@@ -3,8 +3,10 @@
 # FCP-style Pi_0-only (a learner trained against a frozen pool of 2 self-play seeds x 2 skill
 # levels, HOLA's Pi_0 recipe), 8 seeds each at 1,048,576 env steps per run, every final
 # learner evaluated with 2,000 episodes on each of Zoos 1-4, paired differences against SP
-# and w/o g. Some 4-5 hours of the shared 2-core machine: run it in chunks, each run of this
-# script continues where the last stopped (finished runs and evaluations are kept).
+# and w/o g. Many hours of the 2-core machine (measured: a HOLA generation after Pi_0 takes
+# 80-110 s on the idle machine, 300-770 s beside a test suite; the 32 runs about 8 hours idle, not
+# the 4-5 first guessed): run it in chunks, each run of this script continues where the last
+# stopped (finished runs and evaluations are kept).
 #   nohup nice -n 19 benchmarks/hola_power.sh > reports/hola_power.log 2>&1 &
 set -e
 cd "$(dirname "$0")/.."
