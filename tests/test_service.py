@@ -467,16 +467,20 @@ def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path
     """A run whose test-zoo results are replaced by planted ones that rank every member above the one the
     (real) validation results choose: the best member and the MLflow champion are still the validation's."""
     real = driver._evaluate_population
+    seen: dict[str, dict[str, dict[str, float]]] = {}
     planted: dict[str, float] = {}
 
     def evaluate(coordinator, zoo, episodes):
-        results = real(coordinator, zoo, episodes)
+        results = seen[zoo] = real(coordinator, zoo, episodes)
         if zoo == "zoo3":  # the test zoo prefers every member but the validation's choice
-            validation = real(coordinator, "validation", episodes)  # the same episodes the run plays
+            assert "validation" in seen, "the selection zoo is evaluated before the test zoo"
             table = pd.DataFrame(
-                [{"member": m, **{f"validation_{k}": v for k, v in r.items()}} for m, r in validation.items()]
+                [
+                    {"member": m, "validation_SUC": r["SUC"], "validation_REW": r["REW"]}
+                    for m, r in seen["validation"].items()
+                ]
             )
-            best, _ = select_best(table, "validation", list(validation))
+            best, _ = select_best(table, "validation", list(seen["validation"]))
             planted.update({m: (5.0 if m == best else 95.0) for m in results})
             for member, row in results.items():
                 row["SUC"], row["REW"] = planted[member], planted[member]
