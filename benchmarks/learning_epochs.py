@@ -4,7 +4,8 @@ Runs learning_sp.py (self-play IPPO on 4p2e1o, the default PPO config but ``epoc
 (epochs, seed) whose result file is missing in --out, the epochs alternating within a seed, then
 prints JSON: per epochs value and seed the time to the target (evaluation time included; the
 evaluations come every 40 updates, so a time is the first evaluation at or above the target),
-the SUC of the first evaluation (40 updates, 327,680 env steps) and the wall seconds per update;
+the SUC of the first evaluation (40 updates, 327,680 env steps) and the wall seconds per update
+(of the first 40 updates, their evaluation included);
 per value the median and worst time; and the paired differences against the first value with
 t-based 95 % intervals. Resumable: a finished run is read back, never run again.
 Usage: python benchmarks/learning_epochs.py [--epochs 2 4] [--seeds 0 1 2] [--out reports/learning_epochs]
@@ -18,7 +19,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from atdrone.benchmark.stats import paired_difference
@@ -99,7 +99,6 @@ def main() -> None:
                 "note": "time to target is quantised by the evaluations every 40 updates (500 episodes each)",
             },
             indent=2,
-            default=lambda x: None if isinstance(x, float) and np.isnan(x) else x,
         )
     )
 
