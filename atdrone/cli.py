@@ -254,21 +254,44 @@ def run_train(args: argparse.Namespace) -> int:
     service = "algorithm" in document
     try:
         return _train_service(args) if service else _train_local(args)
-    except KeyboardInterrupt:
-        where = getattr(args, "run_dir", None)
-        if where is None:
+    except Exception as exc:
+        if not interrupted(exc):
             raise
-        kept = _kept_service(where) if service else _kept_local(where)
-        again = f"atdrone train {args.config}" + "".join(f" {a}" for a in _same_run_flags(args))
-        if kept is None:
-            print(
-                f"atdrone train: interrupted before the first checkpoint: nothing was kept in {where}; "
-                f"start again with: {again}",
-                file=sys.stderr,
-            )
-        else:
-            print(f"atdrone train: interrupted; kept {kept} in {where}; resume with: {again} --resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _say_what_was_kept(args, service)
+    except KeyboardInterrupt:
+        return _say_what_was_kept(args, service)
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is, or was caused by, a Ctrl-C: one that lands while an extension module initialises
+    (a lazy import of matplotlib's, for one) comes out as ``ImportError: initialization failed`` raised from
+    the KeyboardInterrupt."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
+def _say_what_was_kept(args: argparse.Namespace, service: bool) -> int:
+    """The interrupted run's one line: what was kept and the command that resumes (re-raises before a run)."""
+    where = getattr(args, "run_dir", None)
+    if where is None:
+        raise KeyboardInterrupt
+    kept = _kept_service(where) if service else _kept_local(where)
+    again = f"atdrone train {args.config}" + "".join(f" {a}" for a in _same_run_flags(args))
+    if kept is None:
+        print(
+            f"atdrone train: interrupted before the first checkpoint: nothing was kept in {where}; "
+            f"start again with: {again}",
+            file=sys.stderr,
+        )
+    else:
+        print(f"atdrone train: interrupted; kept {kept} in {where}; resume with: {again} --resume", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 def _same_run_flags(args: argparse.Namespace) -> list[str]:
@@ -617,11 +640,17 @@ def main(argv: list[str] | None = None) -> int:
         _error(args, "interrupted")
         return 130
     except (UserError, OSError) as exc:
+        if interrupted(exc):
+            _error(args, "interrupted")
+            return 130
         if args.debug:
             raise
         _error(args, _one_line(exc))
         return EXIT_USAGE
     except Exception as exc:  # a bug: say what and where to look, not a page of traceback
+        if interrupted(exc):
+            _error(args, "interrupted")
+            return 130
         if args.debug:
             raise
         _error(args, f"internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)")

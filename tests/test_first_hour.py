@@ -265,6 +265,42 @@ def _interrupt_when(tmp_path: Path, config: Path, ready: Path) -> subprocess.Com
 
 
 @pytest.mark.timeout(240)
+def _import_interrupted(run_dir: Path) -> Callable[[object], int]:
+    """A training that a Ctrl-C meets inside an extension module's initialisation: pybind11 turns the
+    KeyboardInterrupt into ``ImportError("initialization failed")`` raised from it (as seen in a suite run)."""
+
+    def train(args: object) -> int:
+        args.run_dir = run_dir  # type: ignore[attr-defined]
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as ctrl_c:
+            raise ImportError("initialization failed") from ctrl_c
+
+    return train
+
+
+def test_a_ctrl_c_that_lands_in_an_import_is_an_interruption_not_an_internal_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import atdrone.cli as cli
+
+    config = _train_config(tmp_path)
+    run_dir = tmp_path / "runs" / "ctrl_c"
+    monkeypatch.setattr(cli, "_train_local", _import_interrupted(run_dir))
+    assert main(["train", str(config)]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"atdrone train: interrupted before the first checkpoint: nothing was kept in {run_dir}; "
+        f"start again with: atdrone train {config}"
+    )
+
+    def broken(args: object) -> int:  # an ImportError of its own is still a bug
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(cli, "_train_local", broken)
+    assert main(["train", str(config)]) == 1
+    assert "internal error: ImportError: initialization failed" in capsys.readouterr().err
+
+
 def test_ctrl_c_in_train_says_what_was_kept_and_how_to_resume(tmp_path: Path) -> None:
     run_dir = tmp_path / "runs" / "ctrl_c"
     # before the first checkpoint (one every 10,000 updates): nothing kept, and it says so
