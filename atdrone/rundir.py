@@ -10,7 +10,7 @@ and the local trainer use it.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -64,12 +64,23 @@ def config_changes(saved: Mapping[str, Any], new: Mapping[str, Any], may_change:
     return changed
 
 
-def check_resume(run_dir: Path, new: Mapping[str, Any], may_change: Iterable[str]) -> None:
-    """Refuse to resume ``run_dir`` with a config that differs from its saved one (beyond ``may_change``)."""
+def check_resume(
+    run_dir: Path,
+    new: Mapping[str, Any],
+    may_change: Iterable[str],
+    as_run: Callable[[Mapping[str, Any]], Mapping[str, Any]] | None = None,
+) -> None:
+    """Refuse to resume ``run_dir`` with a config that differs from its saved one (beyond ``may_change``).
+
+    ``as_run``: what the saved document meant when it was written (e.g. a section saved as overrides of
+    defaults since changed, completed with the defaults of then), compared instead of its text."""
     path = run_dir / "config.json"
     if not path.is_file():
         raise RunError(f"{path} is missing: cannot tell which experiment {run_dir} holds, so it is not resumed")
-    changes = config_changes(read_json(path, "run config"), new, may_change)
+    saved: Mapping[str, Any] = read_json(path, "run config")
+    if as_run is not None:
+        saved = as_run(saved)
+    changes = config_changes(saved, new, may_change)
     if changes:
         shown = "; ".join(changes[:6]) + (f"; and {len(changes) - 6} more" if len(changes) > 6 else "")
         raise RunError(

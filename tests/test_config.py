@@ -730,3 +730,67 @@ def _numbers(node: Any) -> Iterator[float]:
             yield from _numbers(v)
     elif isinstance(node, int | float) and not isinstance(node, bool):
         yield float(node)
+
+
+# ------------------------------------------------- a run saves every PPO value it trains with
+def _service_doc(**ppo: Any) -> dict[str, Any]:
+    return {"name": "ppo_t", "algorithm": "sp", "task": "4p2e1o", "sp": {}, "ppo": dict(ppo)}
+
+
+def _saved(tmp_path: Path, config: dict[str, Any]) -> Path:
+    run_dir = tmp_path / "ppo_t"
+    run_dir.mkdir(exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps(config))
+    return run_dir
+
+
+def test_a_run_config_holds_every_ppo_value_so_a_changed_default_cannot_change_a_resumed_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from atdrone.learn import ppo
+    from atdrone.learn.trainer import load_train_config
+    from atdrone.rundir import RunError, check_resume
+    from atdrone.service.driver import RESUME_MAY_CHANGE
+    from atdrone.service.experiment import load_experiment
+
+    cfg = load_experiment(_service_doc(hidden=32))
+    assert cfg.ppo == {**dataclasses.asdict(ppo.PRESETS["default"]), "hidden": 32}  # every field, as run with
+    train = load_train_config({"name": "t", "task": "4p2e1o", "preset": "paper", "ppo": {"lr": 1e-3}})
+    assert train.ppo == {**dataclasses.asdict(ppo.PRESETS["paper"]), "lr": 1e-3}
+    run_dir = _saved(tmp_path, cfg.to_dict())
+    check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+
+    # a later version moves a default (epochs 2 -> 4): the saved run resumes only with the values it trained with
+    monkeypatch.setitem(ppo.PRESETS, "default", dataclasses.replace(ppo.PRESETS["default"], epochs=4))
+    with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4"):
+        check_resume(run_dir, load_experiment(_service_doc(hidden=32)).to_dict(), RESUME_MAY_CHANGE)
+    pinned = load_experiment(_service_doc(hidden=32, epochs=2)).to_dict()
+    check_resume(run_dir, pinned, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+
+
+def test_a_run_saved_with_ppo_overrides_only_resumes_with_the_values_of_its_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """config.json as runs wrote it before they saved every value: the overrides alone. Such a run trained
+    with the presets of then (OVERRIDES_ERA_PRESETS), and a resume compares with those, not with today's."""
+    from atdrone.learn import ppo
+    from atdrone.rundir import RunError, check_resume
+    from atdrone.service.driver import RESUME_MAY_CHANGE
+    from atdrone.service.experiment import load_experiment
+
+    assert {"default": ppo.PRESETS["default"], "paper": ppo.PRESETS["paper"]} == ppo.OVERRIDES_ERA_PRESETS
+    today = load_experiment(_service_doc(hidden=32)).to_dict()
+    run_dir = _saved(tmp_path, {**today, "ppo": {"hidden": 32}})
+    with pytest.raises(RunError, match=r"ppo\.epochs: '<unset>' -> 2"):  # the text alone is not what it ran
+        check_resume(run_dir, today, RESUME_MAY_CHANGE)
+    check_resume(run_dir, today, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+    with pytest.raises(RunError, match=r"ppo\.hidden: 32 -> 128"):  # its own override still counts
+        check_resume(run_dir, load_experiment(_service_doc()).to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+
+    monkeypatch.setitem(ppo.PRESETS, "default", dataclasses.replace(ppo.PRESETS["default"], epochs=4))
+    moved = load_experiment(_service_doc(hidden=32)).to_dict()
+    with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4"):
+        check_resume(run_dir, moved, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+    check_resume(
+        run_dir, load_experiment(_service_doc(hidden=32, epochs=2)).to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document
+    )

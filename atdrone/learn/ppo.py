@@ -7,6 +7,7 @@ Ray learner) than the rollout. It runs on the device of the model (a GPU when gi
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
@@ -75,6 +76,60 @@ PRESETS: dict[str, PPOConfig] = {
 }
 
 
+# The presets as they stood while runs saved only their PPO *overrides* (a config.json "ppo" section of the
+# keys a user set). Such a run trained with these values, whatever today's presets hold: a resume completes
+# its saved section with them (:func:`saved_ppo_document`). Every field is written out, so a later change of
+# a PPOConfig default cannot move them.
+OVERRIDES_ERA_PRESETS: dict[str, PPOConfig] = {
+    "default": PPOConfig(
+        num_envs=64,
+        rollout_steps=128,
+        epochs=2,
+        minibatch_size=4096,
+        lr=3e-4,
+        lr_schedule="linear",
+        gamma=0.99,
+        gae_lambda=0.95,
+        clip=0.2,
+        vf_coef=0.5,
+        ent_coef=0.003,
+        max_grad_norm=0.5,
+        normalize_advantages=True,
+        entity_dim=64,
+        hidden=128,
+        init_log_std=-0.5,
+        proximity=0.15,
+        collision_credit="team",
+        collision_scale=1.0,
+        history=0,
+        teammate_coef=1.0,
+    ),
+    "paper": PPOConfig(
+        num_envs=8,
+        rollout_steps=128,
+        epochs=20,
+        minibatch_size=256,
+        lr=3e-4,
+        lr_schedule="constant",
+        gamma=0.99,
+        gae_lambda=0.95,
+        clip=0.2,
+        vf_coef=1.0,
+        ent_coef=0.01,
+        max_grad_norm=0.5,
+        normalize_advantages=True,
+        entity_dim=64,
+        hidden=128,
+        init_log_std=-0.5,
+        proximity=0.15,
+        collision_credit="team",
+        collision_scale=1.0,
+        history=0,
+        teammate_coef=1.0,
+    ),
+}
+
+
 # sizes that allocate memory: environments x steps of one update are held at once
 MAX_SAMPLES = 2**24
 PPO_LIMITS = {"num_envs": (1, 65_536), "rollout_steps": (1, 100_000), "epochs": (1, 1000), "minibatch_size": (1, 2**24)}
@@ -108,6 +163,28 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
         if not 0 <= getattr(cfg, name) <= 1:
             raise ConfigError(f"{path}.{name}", f"must be in [0, 1], got {getattr(cfg, name)}")
     return cfg
+
+
+def ppo_document(document: dict[str, Any] | None = None, preset: str = "default", path: str = "ppo") -> dict[str, Any]:
+    """Every PPO value a config trains with (``preset`` with ``document``'s overrides), validated: what a run
+    saves in its config, so that a later change of a preset or a default cannot change a resumed run."""
+    return _as_dict(ppo_config(document, preset, path))
+
+
+def saved_ppo_document(config: Mapping[str, Any]) -> dict[str, Any]:
+    """A saved run config (config.json) with its "ppo" section whole, as the run trained with it.
+
+    A section that names every PPO field is returned as saved. One saved before runs stored every value
+    holds only the overrides of its preset: they are completed with that preset as it stood then
+    (:data:`OVERRIDES_ERA_PRESETS`), not with today's, so a resume compares what the run really used.
+    """
+    section = config.get("ppo")
+    preset = config.get("preset", "default")
+    if not isinstance(section, Mapping) or set(section) >= set(_as_dict(PRESETS["default"])):
+        return dict(config)
+    if preset not in OVERRIDES_ERA_PRESETS:
+        return dict(config)  # an unknown preset: the comparison names it
+    return {**config, "ppo": {**_as_dict(OVERRIDES_ERA_PRESETS[preset]), **section}}
 
 
 def net_config(cfg: PPOConfig, centralised_critic: bool = False) -> NetConfig:

@@ -15,7 +15,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -37,7 +37,7 @@ from atdrone.config import (
 )
 from atdrone.fileio import atomic_write_bytes
 from atdrone.learn.learner import Learner, LearnerSpec, check_device
-from atdrone.learn.ppo import PPOConfig, ppo_config
+from atdrone.learn.ppo import PPOConfig, ppo_config, ppo_document, saved_ppo_document
 from atdrone.learn.rollout import RolloutWorker
 from atdrone.models import build_model
 from atdrone.models.checkpoint import save_checkpoint
@@ -124,7 +124,7 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     cfg: TrainConfig = load_config(TrainConfig, path_or_doc, "train", **overrides)
     _check_settings(cfg)
     task = check_task_field(cfg.task)
-    ppo_config(cfg.ppo, cfg.preset)
+    cfg = replace(cfg, ppo=ppo_document(cfg.ppo, cfg.preset))  # every value, as the run saves it
     if cfg.mode == "best_response" and not cfg.zoo:
         raise ConfigError("zoo", "best_response training needs a zoo")
     if cfg.zoo and cfg.mode != "best_response":
@@ -381,7 +381,7 @@ def run_training(cfg: TrainConfig, resume: bool = False, progress: bool = True, 
 
     run_dir = Path(cfg.out_dir) / cfg.name
     if resume and (run_dir / "config.json").exists():
-        check_resume(run_dir, asdict(cfg), RESUME_MAY_CHANGE)
+        check_resume(run_dir, asdict(cfg), RESUME_MAY_CHANGE, saved_ppo_document)
     elif not resume and ((run_dir / STATE_FILE).exists() or (run_dir / "trainer_state.pt").exists()):
         refuse_existing(run_dir)
     trainer = Trainer(cfg)

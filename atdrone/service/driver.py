@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 
 from atdrone.fileio import atomic_write_bytes
+from atdrone.learn.ppo import saved_ppo_document
 from atdrone.population.base import GenerationReport
 from atdrone.rundir import RunError, check_resume, read_json, refuse_existing
 from atdrone.service.experiment import ExperimentConfig, registry_name
@@ -184,12 +185,12 @@ def _run(
         if not resume:
             refuse_existing(run_dir)
         saved = read_json(state_path, "service state")
-        check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
+        check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE, saved_ppo_document)
         done = _completed(run_dir, saved, cfg, tracking_uri)
         if done is not None:
             return done
     elif resume and (run_dir / "config.json").exists():
-        check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE)
+        check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE, saved_ppo_document)
     db = registry_path(cfg, run_dir)
     if saved.get("registry", registry_record(cfg, run_dir)) != registry_record(cfg, run_dir):
         raise RunError(

@@ -18,7 +18,7 @@ became ``ppo.num_envs`` and ``rollout_steps`` became ``ppo.rollout_steps``.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ from atdrone.config import (
     require_at_least,
     require_at_most,
 )
-from atdrone.learn.ppo import ppo_config
+from atdrone.learn.ppo import ppo_config, ppo_document
 from atdrone.policies.zoo import PolicyError, load_zoo
 
 # integer settings that must be >= 1 (jobs/train.py also offers them as overrides)
@@ -142,6 +142,7 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
     cfg: ExperimentConfig = load_config(ExperimentConfig, base, "experiments", **overrides)
     _check_settings(cfg)
     check_task_field(cfg.task)
+    cfg = replace(cfg, ppo=ppo_document(cfg.ppo, cfg.preset))  # every value, as the run saves it
     ppo = ppo_config(cfg.ppo, cfg.preset)
     if ppo.num_envs % cfg.num_workers:
         raise ConfigError(
