@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import scipy.stats
 
-from atdrone.benchmark import stats
+from atdrone.benchmark import report, stats
 from atdrone.benchmark.cells import Cell, cells, experiment_document, load_benchmark
 from atdrone.benchmark.report import write_report
 from atdrone.benchmark.weights import keep_weights
@@ -79,7 +79,7 @@ def _records(cfg: Any, tmp_path: Path) -> list[dict[str, Any]]:
     out = []
     for cell in cells(cfg):
         zoos = [cell.zoo] if cell.kind != "method" else [*cfg.zoos, cfg.select_zoo]
-        base = {"sp": 30.0, "hola": 40.0, "br": 70.0, "floor": 5.0}[cell.method]
+        base = {"sp": 30.0, "hola": 40.0, "br": 70.0, "floor": 5.0}.get(cell.method, 35.0)
         metrics = {
             z: {"SUC": base + rng.normal(0, 5), "COL": 20.0, "AST": 300.0 + cell.seed, "REW": base / 10} for z in zoos
         }
@@ -200,3 +200,59 @@ def test_the_quick_preset_loads_with_every_method_on_the_four_tasks() -> None:
     cfg = load_benchmark("quick")  # paper.json is checked the same way by hand: each load takes seconds
     assert len(cfg.methods) == 8 and len(cfg.tasks) == 4 and len(cfg.seeds) >= 3
     assert cfg.select_zoo == "validation" and cfg.best_response
+
+
+def test_the_papers_orderings_are_checked_paired_over_seeds_with_a_verdict_each(tmp_path: Path) -> None:
+    """Planted SUCs: HOLA ahead of SP on Zoo 3 in the hard task (holds), one method above the best response
+    (reversed), NAHT-D against MAPPO on the easy task behind on one zoo and ahead on the other, both within
+    noise (undecided); the claims whose methods the config lacks are not checked."""
+    doc = {
+        **DOC,
+        "zoos": ["zoo1", "zoo3"],
+        "pool": "train_pool",
+        "methods": {m: {"experiment": f"{m}_quick"} for m in ("sp", "hola", "naht_d", "mappo")},
+        "out_dir": str(tmp_path / "bench"),
+        "results_dir": str(tmp_path / "results"),
+    }
+    cfg = load_benchmark(doc)
+    records = _records(cfg, tmp_path)
+    noise = [0.0, 12.0, -3.0]
+
+    def suc(method: str, task: str, zoo: str, s: int) -> float:
+        if method == "br":
+            return 90.0 + 2 * s
+        if (method, task, zoo) == ("hola", "4p2e1o", "zoo1"):
+            return 95.0 + 3 * s  # above the best response: br - hola = -5, -6, -7
+        if method == "naht_d":
+            return {"zoo1": 30.0, "zoo3": 40.0}.get(zoo, 35.0) + noise[s]  # vs MAPPO's 35: -5, 7, -8 / 5, 17, 2
+        if method == "mappo":
+            return 35.0
+        return {"sp": 30.0, "hola": 40.0, "mappo": 35.0, "floor": 5.0}[method] + s
+
+    for r in records:
+        c = r["cell"]
+        for zoo, values in r["metrics"].items():
+            values["SUC"] = suc(c["method"], c["task"], zoo, c["seed"])
+    files = write_report(cfg, records)
+    got = pd.read_csv(files["orderings.csv"])
+    verdicts = {(r.claim, r.task, r.zoo, r.better, r.worse): r.verdict for r in got.itertuples()}
+    hola, br, naht = (claim for claim, *_ in report.CLAIMS[:3])
+    assert {k: v for k, v in verdicts.items() if k[0] == hola} == {(hola, "4p2e5o", "zoo3", "hola", "sp"): "holds"}
+    bounds = {k: v for k, v in verdicts.items() if k[0] == br}
+    assert len(bounds) == 16 and {k for k, v in bounds.items() if v != "holds"} == {
+        (br, "4p2e1o", "zoo1", "br", "hola")
+    }
+    assert bounds[(br, "4p2e1o", "zoo1", "br", "hola")] == "reversed"
+    assert {k: v for k, v in verdicts.items() if k[0] == naht} == {
+        (naht, "4p2e1o", "zoo1", "naht_d", "mappo"): "behind, undecided",
+        (naht, "4p2e1o", "zoo3", "naht_d", "mappo"): "ahead, undecided",
+    }
+    assert set(got.claim) == {hola, br, naht}  # no NAHT-D w/o Dec in this config: its claims are not checked
+    row = got[(got.claim == naht) & (got.zoo == "zoo3")].iloc[0]
+    diffs = np.array([5.0, 17.0, 2.0])
+    t = scipy.stats.t.ppf(0.975, 2)
+    assert row["diff"] == pytest.approx(8.0) and row["ci95_high"] == pytest.approx(8.0 + t * diffs.std(ddof=1) / 3**0.5)
+    text = files["report.md"].read_text()
+    assert "## The paper's orderings" in text
+    assert f"- {br}: 16 comparisons: 15 holds; 0 ahead, undecided; 0 behind, undecided; 1 reversed." in text
+    assert "| 4p2e1o | zoo1 | br - hola | 3 | -6.0 +- 0.6 [-8.5, -3.5] | reversed |" in text

@@ -14,7 +14,8 @@ Files (``<results>/``):
 - ``evaluations.csv`` (one row per run x zoo), ``table.csv`` (Table 2, long form),
   ``paired.csv``, ``normalised.csv``, ``aggregate.csv`` (IQM and mean with stratified
   bootstrap 95 % intervals), ``improvement.csv`` (probability of improvement),
-  ``budget.csv``, ``timing.csv``;
+  ``budget.csv``, ``timing.csv``, ``orderings.csv`` (the paper's orderings of methods, each comparison
+  paired over seeds with its verdict: :func:`orderings`);
 - ``suc_<task>.png``: SUC per zoo and method, the best response and the floor as lines.
 """
 
@@ -115,6 +116,62 @@ def paired(cfg: BenchmarkConfig, frame: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+# The paper's orderings (Sec. 5, Figs. 3-4): (claim, better, worse, tasks, zoos); None: every task or test zoo.
+# "br" is the best response of each (task, zoo); the easy tasks are 4p2e3o and 4p2e1o, the hard 4p2e5o and 4p3e5o.
+EASY, HARD = ("4p2e3o", "4p2e1o"), ("4p2e5o", "4p3e5o")
+CLAIMS: tuple[tuple[str, str, tuple[str, ...] | None, tuple[str, ...] | None, tuple[str, ...] | None], ...] = (
+    (
+        "HOLA-Drone V2 ahead of SP, PBT and w/o g on Zoo 3 in the hard tasks",
+        "hola",
+        ("sp", "pbt", "hola_no_g"),
+        HARD,
+        ("zoo3",),
+    ),
+    ("the best response is the upper bound", "br", None, None, None),
+    ("NAHT-D ahead of MAPPO on the easy tasks", "naht_d", ("mappo",), EASY, None),
+    ("NAHT-D w/o Dec ahead of MAPPO on the easy tasks", "naht_d_no_dec", ("mappo",), EASY, None),
+    ("NAHT-D w/o Dec ahead of NAHT-D on the hard tasks", "naht_d_no_dec", ("naht_d",), HARD, None),
+)
+
+
+def _verdict(diff: float, low: float, high: float) -> str:
+    if not np.isfinite(low):
+        return "-"
+    if low > 0:
+        return "holds"
+    if high < 0:
+        return "reversed"
+    return "ahead, undecided" if diff > 0 else "behind, undecided"
+
+
+def orderings(cfg: BenchmarkConfig, frame: pd.DataFrame) -> pd.DataFrame:
+    """The paper's orderings (:data:`CLAIMS`) checked where the config has both sides: SUC of the better
+    side minus the worse over the seeds both ran (paired, t-based 95 % interval), and a verdict: holds
+    (the interval above 0), reversed (below 0), or ahead / behind but undecided."""
+    rows = []
+    for claim, better, worse, tasks, zoos in CLAIMS:
+        others = [m for m in (worse or tuple(cfg.methods)) if m in cfg.methods and m != better]
+        if better != "br" and better not in cfg.methods:
+            continue
+        for task in [t for t in cfg.tasks if tasks is None or t in tasks]:
+            for zoo in [z for z in cfg.zoos if zoos is None or z in zoos]:
+                pick = (frame.task == task) & (frame.zoo == zoo)
+                a = frame[pick & (frame.method == better)].set_index("seed")
+                for other in others:
+                    b = frame[pick & (frame.method == other)].set_index("seed")
+                    diff = paired_difference(a, b, ["SUC"]) if len(a) and len(b) else None
+                    if diff is None:
+                        continue
+                    d = diff["SUC"]
+                    low, high = d["ci95"]
+                    rows.append(
+                        {"claim": claim, "task": task, "zoo": zoo, "better": better, "worse": other, "n": diff["n"]}
+                        | {"diff": d["diff"], "se": d["se"], "ci95_low": low, "ci95_high": high}
+                        | {"verdict": _verdict(d["diff"], low, high)}
+                    )
+    return pd.DataFrame(rows)
+
+
 def normalised(cfg: BenchmarkConfig, frame: pd.DataFrame) -> pd.DataFrame:
     """SUC per method run and test zoo scaled between the floor (random learner, 0) and the mean best
     response over seeds (1); NaN where the best response does not beat the floor."""
@@ -210,6 +267,7 @@ def markdown(
     agg: pd.DataFrame,
     poi: pd.DataFrame,
     spent: pd.DataFrame,
+    claims: pd.DataFrame | None = None,
 ) -> str:
     """The report's text."""
     zoos = [*cfg.zoos, cfg.select_zoo]
@@ -307,7 +365,38 @@ def markdown(
                 f"| {p['score']} | P({p['method']} > {p['reference']}) | {p['P(method > reference)']:.3f} | "
                 f"[{p['ci95_low']:.3f}, {p['ci95_high']:.3f}] |"
             )
+    if claims is not None and len(claims):
+        lines += _claims_text(claims)
     return "\n".join(lines) + "\n"
+
+
+def _claims_text(claims: pd.DataFrame) -> list[str]:
+    """Each of the paper's orderings: how many comparisons it holds in, and every one where it does not."""
+    lines = [
+        "",
+        "## The paper's orderings",
+        "",
+        "SUC of the side the paper puts ahead minus the other, paired over seeds, per task and test zoo: holds "
+        "where the t-based 95 % interval is above 0, reversed where it is below, undecided otherwise.",
+        "",
+    ]
+    for claim, g in claims.groupby("claim", sort=False):
+        counts = g["verdict"].value_counts()
+        parts = [f"{counts.get(v, 0)} {v}" for v in ("holds", "ahead, undecided", "behind, undecided", "reversed")]
+        lines.append(f"- {claim}: {len(g)} comparisons: " + "; ".join(parts) + ".")
+    misses = claims[claims.verdict != "holds"]
+    if len(misses):
+        lines += ["", "Where an ordering does not hold:", ""]
+        lines += [
+            "| claim | task | zoo | better - worse | n | SUC difference | verdict |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for _, c in misses.iterrows():
+            lines.append(
+                f"| {c['claim']} | {c['task']} | {c['zoo']} | {c['better']} - {c['worse']} | {int(c['n'])} | "
+                f"{_diff(c)} | {c['verdict']} |"
+            )
+    return lines
 
 
 def _diff(row: pd.Series) -> str:
@@ -367,6 +456,7 @@ def write_report(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dic
     norm = normalised(cfg, frame)
     agg, poi = aggregates(cfg, frame, norm)
     spent, timing = budget(cfg, records)
+    claims = orderings(cfg, frame)
     out = cfg.results
     files: dict[str, Path] = {}
     for name, data in (
@@ -378,9 +468,12 @@ def write_report(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dic
         ("improvement", poi),
         ("budget", spent),
         ("timing", timing),
+        ("orderings", claims),
     ):
         files[f"{name}.csv"] = atomic_write_bytes(out / f"{name}.csv", data.to_csv(index=False).encode())
-    files["report.md"] = atomic_write_text(out / "report.md", markdown(cfg, table, pairs, norm, agg, poi, spent))
+    files["report.md"] = atomic_write_text(
+        out / "report.md", markdown(cfg, table, pairs, norm, agg, poi, spent, claims)
+    )
     for task in cfg.tasks:
         files[f"suc_{task}.png"] = suc_figure(cfg, table, task, out / f"suc_{task}.png")
     return files
