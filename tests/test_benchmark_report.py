@@ -128,6 +128,7 @@ def test_the_report_holds_table_2_paired_differences_normalised_scores_and_aggre
     for part in ("Table 2", "Paired differences", "Normalised SUC", "Aggregates", "1,024", "CPU-s"):
         assert part in text
     assert files["suc_4p2e5o.png"].read_bytes()[:4] == b"\x89PNG"
+    assert "fig3_without_teammate_modelling.png" in files and "fig4_with_teammate_modelling.png" not in files
     again = write_report(cfg, list(reversed(records)))  # the order the cells finished in does not matter
     assert again["report.md"].read_text() == text
 
@@ -202,7 +203,9 @@ def test_the_quick_preset_loads_with_every_method_on_the_four_tasks() -> None:
     assert cfg.select_zoo == "validation" and cfg.best_response
 
 
-def test_the_papers_orderings_are_checked_paired_over_seeds_with_a_verdict_each(tmp_path: Path) -> None:
+def test_the_papers_orderings_are_checked_paired_over_seeds_with_a_verdict_each(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Planted SUCs: HOLA ahead of SP on Zoo 3 in the hard task (holds), one method above the best response
     (reversed), NAHT-D against MAPPO on the easy task behind on one zoo and ahead on the other, both within
     noise (undecided); the claims whose methods the config lacks are not checked."""
@@ -233,7 +236,19 @@ def test_the_papers_orderings_are_checked_paired_over_seeds_with_a_verdict_each(
         c = r["cell"]
         for zoo, values in r["metrics"].items():
             values["SUC"] = suc(c["method"], c["task"], zoo, c["seed"])
+    drawn: dict[str, list[set[str]]] = {}
+    save = report._save
+
+    def keep_labels(fig: Any, path: Path) -> Path:  # each figure's legend, per panel that has one
+        drawn[path.stem] = [{t.get_text() for t in ax.get_legend().get_texts()} for ax in fig.axes if ax.get_legend()]
+        return save(fig, path)
+
+    monkeypatch.setattr(report, "_save", keep_labels)
     files = write_report(cfg, records)
+    lines = {"best response", "floor (random)"}
+    assert drawn["fig3_without_teammate_modelling"] == [{"sp", "hola", *lines}]  # the paper's two figures
+    assert drawn["fig4_with_teammate_modelling"] == [{"mappo", "naht_d", *lines}]
+    assert files["fig4_with_teammate_modelling.png"].read_bytes()[:4] == b"\x89PNG"
     got = pd.read_csv(files["orderings.csv"])
     verdicts = {(r.claim, r.task, r.zoo, r.better, r.worse): r.verdict for r in got.itertuples()}
     hola, br, naht = (claim for claim, *_ in report.CLAIMS[:3])

@@ -16,11 +16,14 @@ Files (``<results>/``):
   bootstrap 95 % intervals), ``improvement.csv`` (probability of improvement),
   ``budget.csv``, ``timing.csv``, ``orderings.csv`` (the paper's orderings of methods, each comparison
   paired over seeds with its verdict: :func:`orderings`);
-- ``suc_<task>.png``: SUC per zoo and method, the best response and the floor as lines.
+- ``suc_<task>.png``: SUC per zoo and method, the best response and the floor as lines;
+  ``fig3_without_teammate_modelling.png`` and ``fig4_with_teammate_modelling.png``: the paper's two figures,
+  a panel per task (:data:`FIGURES`).
 """
 
 from __future__ import annotations
 
+import io
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -412,17 +415,20 @@ def _norm_cell(x: np.ndarray) -> str:
     return f"{mean:.2f}" if not np.isfinite(std) else f"{mean:.2f} +- {std:.2f}"
 
 
-def suc_figure(cfg: BenchmarkConfig, table: pd.DataFrame, task: str, path: Path) -> Path:
-    """SUC per test zoo (groups) and method (bars, std as error bars); best response and floor as lines."""
-    import matplotlib
+# the paper's two figures: the methods without teammate modelling (Fig. 3, with FCP beside them) and with it (Fig. 4)
+FIGURES = {
+    "fig3_without_teammate_modelling": (
+        "SUC without teammate modelling (Fig. 3)",
+        ("sp", "pbt", "fcp", "hola_no_g", "hola"),
+    ),
+    "fig4_with_teammate_modelling": ("SUC with teammate modelling (Fig. 4)", ("mappo", "naht_d_no_dec", "naht_d")),
+}
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    methods = list(cfg.methods)
+def _draw_suc(ax: Any, cfg: BenchmarkConfig, sub: pd.DataFrame, methods: Sequence[str]) -> None:
+    """SUC of one task per test zoo (groups) and method (bars, std as error bars); best response and floor as
+    lines."""
     width = 0.8 / max(len(methods), 1)
-    fig, ax = plt.subplots(figsize=(2.0 + 1.6 * len(cfg.zoos), 3.6))
-    sub = table[table.task == task]
     for i, method in enumerate(methods):
         rows = sub[sub.method == method].set_index("zoo").reindex(list(cfg.zoos))
         x = np.arange(len(cfg.zoos)) - 0.4 + width * (i + 0.5)
@@ -434,18 +440,50 @@ def suc_figure(cfg: BenchmarkConfig, table: pd.DataFrame, task: str, path: Path)
                 label = ("best response" if bound == "br" else "floor (random)") if j == 0 else None
                 ax.plot([j - 0.45, j + 0.45], [rows.loc[zoo, "SUC_mean"]] * 2, style, label=label)
     ax.set_xticks(np.arange(len(cfg.zoos)), list(cfg.zoos))
-    ax.set_ylabel("SUC (%)")
-    ax.set_title(f"{cfg.name}: SUC on {task} ({cfg.env_steps:,} env steps per run)")
-    ax.legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    from io import BytesIO
 
-    buffer = BytesIO()
+
+def _save(fig: Any, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=100)
     plt.close(fig)
     atomic_write_bytes(path, buffer.getvalue())
     return path
+
+
+def suc_figure(cfg: BenchmarkConfig, table: pd.DataFrame, task: str, path: Path) -> Path:
+    """SUC per test zoo (groups) and method (bars, std as error bars); best response and floor as lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(2.0 + 1.6 * len(cfg.zoos), 3.6))
+    _draw_suc(ax, cfg, table[table.task == task], list(cfg.methods))
+    ax.set_ylabel("SUC (%)")
+    ax.set_title(f"{cfg.name}: SUC on {task} ({cfg.env_steps:,} env steps per run)")
+    ax.legend(fontsize=7, loc="upper right")
+    return _save(fig, path)
+
+
+def family_figure(cfg: BenchmarkConfig, table: pd.DataFrame, title: str, methods: Sequence[str], path: Path) -> Path:
+    """One of the paper's figures: a panel per task, the family's methods as bars per test zoo, the best
+    response and the floor as lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(cfg.tasks), figsize=(1.2 + 3.2 * len(cfg.tasks), 3.6), sharey=True, squeeze=False)
+    for ax, task in zip(axes[0], cfg.tasks, strict=True):
+        _draw_suc(ax, cfg, table[table.task == task], methods)
+        ax.set_title(task)
+    axes[0][0].set_ylabel("SUC (%)")
+    axes[0][-1].legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{cfg.name}: {title}, mean +- std over {len(cfg.seeds)} seeds, {cfg.env_steps:,} env steps per run")
+    return _save(fig, path)
 
 
 def write_report(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dict[str, Path]:
@@ -476,4 +514,8 @@ def write_report(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dic
     )
     for task in cfg.tasks:
         files[f"suc_{task}.png"] = suc_figure(cfg, table, task, out / f"suc_{task}.png")
+    for name, (title, family) in FIGURES.items():
+        methods = [m for m in family if m in cfg.methods]
+        if methods:
+            files[f"{name}.png"] = family_figure(cfg, table, title, methods, out / f"{name}.png")
     return files
