@@ -1,0 +1,61 @@
+"""The published weights of the committed benchmark reports (benchmarks/results/<benchmark>/weights): one per
+method and task, each loaded by name with its digest checked; one weight per method plays exactly its
+manifest's metrics on the episodes the benchmark played (its evaluation seed and episode count)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+
+from atdrone.benchmark.cells import EVAL_SEED, load_benchmark
+from atdrone.resolve import resolve_policy
+from atdrone.teams.evaluation import evaluate
+
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "benchmarks" / "results"
+MANIFESTS = sorted(RESULTS.glob("*/weights/*/*.json"))
+
+
+def _name(doc: dict) -> str:
+    return f"weights:{doc['benchmark']}/{doc['method']}/{doc['task']}"
+
+
+def _played() -> list[object]:
+    """One manifest per (benchmark, method), the tasks and zoos taken in turn so that each is played by some."""
+    chosen, seen = [], set()
+    for path in MANIFESTS:
+        bench, method = path.parents[2].name, path.parent.name
+        if (bench, method) in seen:
+            continue
+        i = len(seen)
+        tasks = sorted(p.stem for p in path.parent.glob("*.json"))
+        if path.stem != tasks[i % len(tasks)]:
+            continue
+        seen.add((bench, method))
+        zoos = sorted(json.loads(path.read_text())["metrics"])
+        zoo = zoos[i % len(zoos)]
+        chosen.append(pytest.param(path, zoo, id=f"{bench}/{method}/{path.stem}/{zoo}"))
+    return chosen
+
+
+def test_the_quick_benchmark_publishes_a_weight_per_method_and_task_each_loading_by_name() -> None:
+    cfg = load_benchmark("quick")
+    found = {(m.parent.name, m.stem) for m in MANIFESTS if m.parents[2].name == "quick"}
+    assert found == {(method, task) for method in cfg.methods for task in cfg.tasks}
+    for path in MANIFESTS:
+        doc = json.loads(path.read_text())
+        assert hashlib.sha256(path.with_suffix(".pt").read_bytes()).hexdigest() == doc["sha256"]
+        assert resolve_policy(_name(doc)) is not None  # the digest is checked again on the way
+
+
+@pytest.mark.parametrize(("manifest", "zoo"), _played())
+def test_published_weights_play_their_manifest_metrics(manifest: Path, zoo: str) -> None:
+    doc = json.loads(manifest.read_text())
+    cfg = load_benchmark(doc["benchmark"])
+    result = evaluate(
+        resolve_policy(_name(doc)), doc["task"], zoo, episodes=cfg.eval_episodes, seeds=[EVAL_SEED + doc["seed"]]
+    )
+    assert result.mean == pytest.approx(doc["metrics"][zoo], rel=0, abs=1e-9, nan_ok=True), (_name(doc), zoo)
