@@ -24,20 +24,17 @@ def _name(doc: dict) -> str:
 
 
 def _played() -> list[object]:
-    """One manifest per (benchmark, method), the tasks and zoos taken in turn so that each is played by some."""
-    chosen, seen = [], set()
-    for path in MANIFESTS:
-        bench, method = path.parents[2].name, path.parent.name
-        if (bench, method) in seen:
-            continue
-        i = len(seen)
-        tasks = sorted(p.stem for p in path.parent.glob("*.json"))
-        if path.stem != tasks[i % len(tasks)]:
-            continue
-        seen.add((bench, method))
-        zoos = sorted(json.loads(path.read_text())["metrics"])
-        zoo = zoos[i % len(zoos)]
-        chosen.append(pytest.param(path, zoo, id=f"{bench}/{method}/{path.stem}/{zoo}"))
+    """One manifest per (benchmark, method): method i plays task i and zoo i of its sorted lists (wrapping),
+    so that every task and zoo is played by some weight."""
+    chosen = []
+    for bench in sorted({p.parents[2].name for p in MANIFESTS}):
+        methods = sorted({p.parent.name for p in MANIFESTS if p.parents[2].name == bench})
+        for i, method in enumerate(methods):
+            tasks = sorted(p.stem for p in (RESULTS / bench / "weights" / method).glob("*.json"))
+            path = RESULTS / bench / "weights" / method / f"{tasks[i % len(tasks)]}.json"
+            zoos = sorted(json.loads(path.read_text())["metrics"])
+            zoo = zoos[i % len(zoos)]
+            chosen.append(pytest.param(path, zoo, id=f"{bench}/{method}/{path.stem}/{zoo}"))
     return chosen
 
 
