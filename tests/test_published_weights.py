@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from atdrone.benchmark.cells import EVAL_SEED, load_benchmark
+from atdrone.benchmark.cells import EVAL_SEED
+from atdrone.benchmark.config import parse_benchmark
 from atdrone.resolve import resolve_policy
 from atdrone.teams.evaluation import evaluate
 
@@ -39,7 +40,7 @@ def _played() -> list[object]:
 
 
 def test_the_quick_benchmark_publishes_a_weight_per_method_and_task_each_loading_by_name() -> None:
-    cfg = load_benchmark("quick")
+    cfg = parse_benchmark("quick")
     found = {(m.parent.name, m.stem) for m in MANIFESTS if m.parents[2].name == "quick"}
     assert found == {(method, task) for method in cfg.methods for task in cfg.tasks}
     for path in MANIFESTS:
@@ -51,7 +52,7 @@ def test_the_quick_benchmark_publishes_a_weight_per_method_and_task_each_loading
 @pytest.mark.parametrize(("manifest", "zoo"), _played())
 def test_published_weights_play_their_manifest_metrics(manifest: Path, zoo: str) -> None:
     doc = json.loads(manifest.read_text())
-    cfg = load_benchmark(doc["benchmark"])
+    cfg = parse_benchmark(doc["benchmark"])
     result = evaluate(
         resolve_policy(_name(doc)), doc["task"], zoo, episodes=cfg.eval_episodes, seeds=[EVAL_SEED + doc["seed"]]
     )
