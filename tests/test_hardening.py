@@ -44,7 +44,7 @@ TINY_SERVICE = {
     "algorithm": "hola",
     "generations": 2,
     "updates_per_generation": 2,
-    "num_workers": 2,
+    "num_workers": 1,  # one rollout worker process per run: splitting over workers is tested in test_service.py
     "eval_episodes": 4,
     "final_zoo": "zoo1",
     "final_episodes": 4,

@@ -18,7 +18,7 @@ TINY = {
     "task": "4p2e1o",
     "generations": 2,
     "updates_per_generation": 1,
-    "num_workers": 2,
+    "num_workers": 1,  # one rollout worker process per run: splitting over workers is tested in test_service.py
     "eval_episodes": 4,
     "final_zoo": "",
     "gif": False,

@@ -18,7 +18,7 @@ from atdrone.teams.pools import UNSEEN_LABEL, load_pool
 TINY: dict[str, Any] = {
     "task": "4p2e1o",
     "updates_per_generation": 2,
-    "num_workers": 2,
+    "num_workers": 1,  # one rollout worker process per run: splitting over workers is tested in test_service.py
     "eval_episodes": 4,
     "final_zoo": "zoo1",
     "final_episodes": 4,
