@@ -254,11 +254,9 @@ def run_train(args: argparse.Namespace) -> int:
     service = "algorithm" in document
     try:
         return _train_service(args) if service else _train_local(args)
-    except Exception as exc:
+    except BaseException as exc:  # a Ctrl-C, or an error that carries one
         if not interrupted(exc):
             raise
-        return _say_what_was_kept(args, service)
-    except KeyboardInterrupt:
         return _say_what_was_kept(args, service)
 
 
@@ -639,20 +637,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _error(args, "interrupted")
         return 130
-    except (UserError, OSError) as exc:
-        if interrupted(exc):
+    except Exception as exc:
+        if interrupted(exc):  # a Ctrl-C that another error carries (one during a module's initialisation)
             _error(args, "interrupted")
             return 130
         if args.debug:
             raise
-        _error(args, _one_line(exc))
-        return EXIT_USAGE
-    except Exception as exc:  # a bug: say what and where to look, not a page of traceback
-        if interrupted(exc):
-            _error(args, "interrupted")
-            return 130
-        if args.debug:
-            raise
+        if isinstance(exc, (UserError, OSError)):
+            _error(args, _one_line(exc))
+            return EXIT_USAGE
+        # a bug: say what and where to look, not a page of traceback
         _error(args, f"internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)")
         return 1
 

@@ -8,7 +8,7 @@ Ray learner) than the rollout. It runs on the device of the model (a GPU when gi
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -66,12 +66,22 @@ PRESETS: dict[str, PPOConfig] = {
         epochs=20,
         minibatch_size=256,
         lr=3e-4,
+        lr_schedule="constant",
         gamma=0.99,
         gae_lambda=0.95,
+        clip=0.2,
         vf_coef=1.0,
         ent_coef=0.01,
-        lr_schedule="constant",
+        max_grad_norm=0.5,
+        normalize_advantages=True,
+        entity_dim=64,
         hidden=128,
+        init_log_std=-0.5,
+        proximity=0.15,
+        collision_credit="team",
+        collision_scale=1.0,
+        history=0,
+        teammate_coef=1.0,
     ),
 }
 
@@ -80,52 +90,33 @@ PRESETS: dict[str, PPOConfig] = {
 # keys a user set). Such a run trained with these values, whatever today's presets hold: a resume completes
 # its saved section with them (:func:`saved_ppo_document`). Every field is written out, so a later change of
 # a PPOConfig default cannot move them.
+_DEFAULT_THEN = PPOConfig(
+    num_envs=64,
+    rollout_steps=128,
+    epochs=2,
+    minibatch_size=4096,
+    lr=3e-4,
+    lr_schedule="linear",
+    gamma=0.99,
+    gae_lambda=0.95,
+    clip=0.2,
+    vf_coef=0.5,
+    ent_coef=0.003,
+    max_grad_norm=0.5,
+    normalize_advantages=True,
+    entity_dim=64,
+    hidden=128,
+    init_log_std=-0.5,
+    proximity=0.15,
+    collision_credit="team",
+    collision_scale=1.0,
+    history=0,
+    teammate_coef=1.0,
+)
 OVERRIDES_ERA_PRESETS: dict[str, PPOConfig] = {
-    "default": PPOConfig(
-        num_envs=64,
-        rollout_steps=128,
-        epochs=2,
-        minibatch_size=4096,
-        lr=3e-4,
-        lr_schedule="linear",
-        gamma=0.99,
-        gae_lambda=0.95,
-        clip=0.2,
-        vf_coef=0.5,
-        ent_coef=0.003,
-        max_grad_norm=0.5,
-        normalize_advantages=True,
-        entity_dim=64,
-        hidden=128,
-        init_log_std=-0.5,
-        proximity=0.15,
-        collision_credit="team",
-        collision_scale=1.0,
-        history=0,
-        teammate_coef=1.0,
-    ),
-    "paper": PPOConfig(
-        num_envs=8,
-        rollout_steps=128,
-        epochs=20,
-        minibatch_size=256,
-        lr=3e-4,
-        lr_schedule="constant",
-        gamma=0.99,
-        gae_lambda=0.95,
-        clip=0.2,
-        vf_coef=1.0,
-        ent_coef=0.01,
-        max_grad_norm=0.5,
-        normalize_advantages=True,
-        entity_dim=64,
-        hidden=128,
-        init_log_std=-0.5,
-        proximity=0.15,
-        collision_credit="team",
-        collision_scale=1.0,
-        history=0,
-        teammate_coef=1.0,
+    "default": _DEFAULT_THEN,
+    "paper": replace(
+        _DEFAULT_THEN, num_envs=8, epochs=20, minibatch_size=256, lr_schedule="constant", vf_coef=1.0, ent_coef=0.01
     ),
 }
 
@@ -165,10 +156,10 @@ def ppo_config(document: dict[str, Any] | None = None, preset: str = "default", 
     return cfg
 
 
-def ppo_document(document: dict[str, Any] | None = None, preset: str = "default", path: str = "ppo") -> dict[str, Any]:
-    """Every PPO value a config trains with (``preset`` with ``document``'s overrides), validated: what a run
-    saves in its config, so that a later change of a preset or a default cannot change a resumed run."""
-    return _as_dict(ppo_config(document, preset, path))
+def ppo_document(cfg: PPOConfig) -> dict[str, Any]:
+    """Every PPO value a config trains with (a resolved :func:`ppo_config`): what a run saves in its config, so
+    that a later change of a preset or a default cannot change a resumed run."""
+    return _as_dict(cfg)
 
 
 def saved_ppo_document(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -180,7 +171,7 @@ def saved_ppo_document(config: Mapping[str, Any]) -> dict[str, Any]:
     """
     section = config.get("ppo")
     preset = config.get("preset", "default")
-    if not isinstance(section, Mapping) or set(section) >= set(_as_dict(PRESETS["default"])):
+    if not isinstance(section, Mapping) or set(section) >= {f.name for f in fields(PPOConfig)}:
         return dict(config)
     if preset not in OVERRIDES_ERA_PRESETS:
         return dict(config)  # an unknown preset: the comparison names it

@@ -124,7 +124,7 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
     cfg: TrainConfig = load_config(TrainConfig, path_or_doc, "train", **overrides)
     _check_settings(cfg)
     task = check_task_field(cfg.task)
-    cfg = replace(cfg, ppo=ppo_document(cfg.ppo, cfg.preset))  # every value, as the run saves it
+    cfg = replace(cfg, ppo=ppo_document(ppo_config(cfg.ppo, cfg.preset)))  # every value, as the run saves it
     if cfg.mode == "best_response" and not cfg.zoo:
         raise ConfigError("zoo", "best_response training needs a zoo")
     if cfg.zoo and cfg.mode != "best_response":

@@ -142,8 +142,8 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
     cfg: ExperimentConfig = load_config(ExperimentConfig, base, "experiments", **overrides)
     _check_settings(cfg)
     check_task_field(cfg.task)
-    cfg = replace(cfg, ppo=ppo_document(cfg.ppo, cfg.preset))  # every value, as the run saves it
     ppo = ppo_config(cfg.ppo, cfg.preset)
+    cfg = replace(cfg, ppo=ppo_document(ppo))  # every value, as the run saves it
     if ppo.num_envs % cfg.num_workers:
         raise ConfigError(
             "ppo.num_envs", f"{ppo.num_envs} environments cannot be split evenly over {cfg.num_workers} workers"
