@@ -300,6 +300,12 @@ def test_a_ctrl_c_that_lands_in_an_import_is_an_interruption_not_an_internal_err
     assert main(["train", str(config)]) == 1
     assert "internal error: ImportError: initialization failed" in capsys.readouterr().err
 
+    # any other command: the same Ctrl-C is "interrupted" and exit 130, not an internal error
+    evaluate = cli.COMMANDS["evaluate"]
+    monkeypatch.setitem(cli.COMMANDS, "evaluate", cli.Command(evaluate.add_parser, _import_interrupted(run_dir)))
+    assert main(["evaluate", "--policy", "greedy"]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "atdrone evaluate: error: interrupted"
+
 
 def test_ctrl_c_in_train_says_what_was_kept_and_how_to_resume(tmp_path: Path) -> None:
     run_dir = tmp_path / "runs" / "ctrl_c"
