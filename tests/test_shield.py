@@ -218,6 +218,26 @@ def test_a_push_never_carries_a_held_drone_toward_a_third() -> None:
     assert d.setpoint[0, 0] < 1.0  # cf0 is pushed away, nothing beyond it
 
 
+def test_a_drone_is_kept_apart_from_where_another_holds_not_from_where_its_policy_would_go() -> None:
+    """cf1 holds (0.2 m from cf2) at (1.0, 1.45) while its policy proposes flying on in +y at 0.3 m/s; cf0,
+    0.45 m behind it, proposes the same. Side by side as proposed the two never meet (scaled 1.8 throughout),
+    but cf1 will not move: cf0's setpoint carried by its feed-forward reaches 1.03 + 0.3 x 0.7 = 1.24 within
+    the look-ahead, 0.21 m from cf1 (scaled 0.84), where a host that paused after this tick would leave it. So
+    cf0 holds as well, at its latch with zero velocity (0.45 m from cf1: nothing to push)."""
+    pos = [[1.0, 1.0, 0.5], [1.0, 1.45, 0.5], [1.2, 1.45, 0.5]]
+    ff = np.array([[0.0, 0.3, 0.0], [0.0, 0.3, 0.0], [0.0, 0.0, 0.0]])
+    sp = [[1.0, 1.03, 0.5], [1.0, 1.48, 0.5], [1.2, 1.45, 0.5]]
+    d = shield(tick(pos, setpoint=sp, setpoint_vel=ff), CFG)
+    assert list(d.action) == [Action.HOLD, Action.HOLD, Action.HOLD]
+    assert rules(d, "cf0") == {"separation"}
+    np.testing.assert_allclose(d.setpoint[0], [1.0, 1.0, 0.5])
+    np.testing.assert_allclose(d.velocity[0], 0.0)
+    np.testing.assert_allclose(d.setpoint[1:, 0], [0.95, 1.25])  # cf1 and cf2 pushed apart: (1.2 - 0.8) x 0.125
+    # with cf2 gone, cf1 is free to fly on and so is cf0 behind it
+    d = shield(tick(pos[:2], setpoint=sp[:2], setpoint_vel=ff[:2]), CFG)
+    assert list(d.action) == [Action.TRACK, Action.TRACK]
+
+
 def test_a_locked_drone_is_stopped_and_the_others_land() -> None:
     d = shield(tick(TWO_APART, locked=np.array([True, False])), CFG)
     assert list(d.action) == [Action.STOP, Action.LAND] and rules(d) == {"locked"}

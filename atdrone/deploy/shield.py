@@ -29,7 +29,9 @@ Rules (``rule`` names as they appear in the flight log):
   within ``lookahead`` seconds (1 s: the tick, the radio and the stopping time), or when
   their proposed setpoints, or their positions, carried along the velocity feed-forward
   for ``lookahead`` seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
-  pushed apart to 1.2 ellipsoids.
+  pushed apart to 1.2 ellipsoids. A drone that holds is checked at its hold point with no
+  feed-forward, not along its proposed setpoint: were the host to pause, every drone flies on to
+  what it was sent last, and those targets are kept apart.
 - ``stale_pose``: a drone without a fresh pose for ``stale_pose`` seconds, or with NaN
   in its pose, lands. ``all_stale``: every drone stale (a landed drone with a fresh
   pose shows the system alive) -> all land; ``mocap_lost``: the freshest pose older than
@@ -306,7 +308,13 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     fire(near_obstacle, Action.TRACK, "obstacle", f"setpoint kept {cfg.obstacle_clearance} m from obstacles")
     clamped |= fast | over | high | fenced | near_obstacle
 
-    # --- separation between physical drones with known poses: now, at the setpoints, and ahead
+    # --- separation between physical drones with known poses: now, at the setpoints, and ahead. A drone that
+    # holds (for another rule, or for a pair found before) is checked where it will hold, not where its policy
+    # wanted to go: a paused host leaves every drone flying to what was sent last, so what is sent must be apart
+    prev_hold = np.full((D, 3), np.nan) if inp.hold_at is None else np.asarray(inp.hold_at, dtype=np.float64)
+    here = np.where(known[:, None], pos, prev)
+    latch = np.where(np.isfinite(prev_hold).all(1)[:, None], prev_hold, here)
+    latch[:, 2] = np.clip(np.where(np.isfinite(latch[:, 2]), latch[:, 2], sp[:, 2]), z_lo, z_hi)
     vel = np.nan_to_num(np.asarray(inp.vel, dtype=np.float64))
     ok = phys & known
     i, j = np.triu_indices(D, 1)
@@ -315,24 +323,26 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     r, h = cfg.drone_radius, cfg.drone_half_height
     now_d = ellipsoid_distance(pos[j] - pos[i], r, h)
     ahead = closest_approach(pos[j] - pos[i], vel[j] - vel[i], cfg.lookahead, r, h)
-    proposed = closest_approach(sp[j] - sp[i], vel_ff[j] - vel_ff[i], cfg.lookahead, r, h)
-    commanded = closest_approach(pos[j] - pos[i], vel_ff[j] - vel_ff[i], cfg.lookahead, r, h)  # ff from here
-    converging = np.minimum(proposed, commanded) < now_d - 1e-12
-    conflict_pair = (
-        (now_d < HOLD_MARGIN) | (ahead < HOLD_MARGIN) | ((np.minimum(proposed, commanded) < HOLD_MARGIN) & converging)
-    )
-    conflict = np.zeros(D, dtype=bool)
-    conflict[i[conflict_pair]] = True
-    conflict[j[conflict_pair]] = True
+    tracking = action == Action.TRACK
+    conflict_pair = np.zeros(len(i), dtype=bool)
+    while True:  # holds only grow (at most D rounds); a pair found in a round stays found
+        goal = np.where(tracking[:, None], sp, np.where((action <= Action.HOLD)[:, None], latch, pos))
+        ff = np.where(tracking[:, None], vel_ff, 0.0)
+        proposed = closest_approach(goal[j] - goal[i], ff[j] - ff[i], cfg.lookahead, r, h)
+        commanded = closest_approach(pos[j] - pos[i], ff[j] - ff[i], cfg.lookahead, r, h)  # ff from here
+        closing = (np.minimum(proposed, commanded) < HOLD_MARGIN) & (np.minimum(proposed, commanded) < now_d - 1e-12)
+        conflict_pair |= (now_d < HOLD_MARGIN) | (ahead < HOLD_MARGIN) | closing
+        conflict = np.zeros(D, dtype=bool)
+        conflict[i[conflict_pair]] = True
+        conflict[j[conflict_pair]] = True
+        if not (conflict & tracking).any():
+            break
+        tracking &= ~conflict
     fire(conflict & (action <= Action.HOLD), Action.HOLD, "separation", "separation ellipsoids would touch")
 
     # --- the setpoint to send: TRACK the clamped one, HOLD the latched hold point (pushed apart)
     hold = action == Action.HOLD
     track = action == Action.TRACK
-    prev_hold = np.full((D, 3), np.nan) if inp.hold_at is None else np.asarray(inp.hold_at, dtype=np.float64)
-    here = np.where(known[:, None], pos, prev)
-    latch = np.where(np.isfinite(prev_hold).all(1)[:, None], prev_hold, here)
-    latch[:, 2] = np.clip(np.where(np.isfinite(latch[:, 2]), latch[:, 2], sp[:, 2]), z_lo, z_hi)
     push = np.zeros((D, 3))
     for a, b, d in zip(i[conflict_pair], j[conflict_pair], now_d[conflict_pair], strict=True):
         delta = pos[a, :2] - pos[b, :2]
