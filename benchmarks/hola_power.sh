@@ -6,12 +6,13 @@
 # and w/o g. Many hours of the 2-core machine (measured: a HOLA generation after Pi_0 takes
 # 80-110 s on the idle machine, 300-770 s beside a test suite; the 32 runs about 8 hours idle, not
 # the 4-5 first guessed): run it in chunks, each run of this script continues where the last
-# stopped (finished runs and evaluations are kept).
+# stopped (finished runs and evaluations are kept). Its runs began at 2 PPO epochs, the default of
+# the time: --ppo-epochs 2 keeps every run on it since the default became 4.
 #   nohup nice -n 19 benchmarks/hola_power.sh > reports/hola_power.log 2>&1 &
 set -e
 cd "$(dirname "$0")/.."
 exec .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o \
   --algorithms hola hola_no_g sp fcp --fcp-seeds 2 --fcp-levels 2 \
-  --seeds 0 1 2 3 4 5 6 7 --episodes 2000 --zoos zoo1 zoo2 zoo3 zoo4 \
+  --seeds 0 1 2 3 4 5 6 7 --episodes 2000 --ppo-epochs 2 --zoos zoo1 zoo2 zoo3 zoo4 \
   --references sp hola_no_g --title "HOLA-Drone V2 with the power to decide (issue 22)" \
   --out reports/hola_power --results benchmarks/results/hola_power --resume "$@"

@@ -88,6 +88,8 @@ def experiment(task: str, algorithm: str, seed: int, args: argparse.Namespace) -
         "gif": False,
         "out_dir": str(Path(args.out) / "runs"),
     }
+    if args.ppo_epochs is not None:
+        doc["ppo"] = {"epochs": args.ppo_epochs}
     doc.update(
         plan(algorithm, args.env_steps, args.updates, hola, {"seeds": args.fcp_seeds, "levels": args.fcp_levels})
     )
@@ -532,6 +534,9 @@ def main() -> None:
         "--phases", nargs="+", default=["train", "evaluate", "report"], choices=["train", "evaluate", "report"]
     )
     parser.add_argument("--env-steps", type=int, default=1_048_576, help="training env steps per run (about)")
+    parser.add_argument(
+        "--ppo-epochs", type=int, default=None, help="PPO epochs per update (default: the preset's; pin a study's)"
+    )
     parser.add_argument("--updates", type=int, default=16, help="PPO updates per learner per generation")
     parser.add_argument("--weight", default="return", choices=["return", "SUC"], help="HOLA hyperedge weight")
     parser.add_argument("--learner-start", default="last", choices=["last", "scratch"])

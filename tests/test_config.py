@@ -739,14 +739,12 @@ def _service_doc(**ppo: Any) -> dict[str, Any]:
 
 def _saved(tmp_path: Path, config: dict[str, Any]) -> Path:
     run_dir = tmp_path / "ppo_t"
-    run_dir.mkdir(exist_ok=True)
+    run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(config))
     return run_dir
 
 
-def test_a_run_config_holds_every_ppo_value_so_a_changed_default_cannot_change_a_resumed_run(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_a_run_config_holds_every_ppo_value_so_a_changed_default_cannot_change_a_resumed_run(tmp_path: Path) -> None:
     from atdrone.learn import ppo
     from atdrone.learn.trainer import load_train_config
     from atdrone.rundir import RunError, check_resume
@@ -760,17 +758,15 @@ def test_a_run_config_holds_every_ppo_value_so_a_changed_default_cannot_change_a
     run_dir = _saved(tmp_path, cfg.to_dict())
     check_resume(run_dir, cfg.to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document)
 
-    # a later version moves a default (epochs 2 -> 4): the saved run resumes only with the values it trained with
-    monkeypatch.setitem(ppo.PRESETS, "default", dataclasses.replace(ppo.PRESETS["default"], epochs=4))
+    # a run begun when the default had 2 epochs (before issue 26) resumes only with the values it trained with
+    then = _saved(tmp_path / "then", load_experiment(_service_doc(hidden=32, epochs=2)).to_dict())
     with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4"):
-        check_resume(run_dir, load_experiment(_service_doc(hidden=32)).to_dict(), RESUME_MAY_CHANGE)
+        check_resume(then, load_experiment(_service_doc(hidden=32)).to_dict(), RESUME_MAY_CHANGE)
     pinned = load_experiment(_service_doc(hidden=32, epochs=2)).to_dict()
-    check_resume(run_dir, pinned, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+    check_resume(then, pinned, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
 
 
-def test_a_run_saved_with_ppo_overrides_only_resumes_with_the_values_of_its_time(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_a_run_saved_with_ppo_overrides_only_resumes_with_the_values_of_its_time(tmp_path: Path) -> None:
     """config.json as runs wrote it before they saved every value: the overrides alone. Such a run trained
     with the presets of then (OVERRIDES_ERA_PRESETS), and a resume compares with those, not with today's."""
     from atdrone.learn import ppo
@@ -778,19 +774,18 @@ def test_a_run_saved_with_ppo_overrides_only_resumes_with_the_values_of_its_time
     from atdrone.service.driver import RESUME_MAY_CHANGE
     from atdrone.service.experiment import load_experiment
 
-    assert {"default": ppo.PRESETS["default"], "paper": ppo.PRESETS["paper"]} == ppo.OVERRIDES_ERA_PRESETS
-    today = load_experiment(_service_doc(hidden=32)).to_dict()
-    run_dir = _saved(tmp_path, {**today, "ppo": {"hidden": 32}})
+    # only the default's epochs moved since (2 -> 4, issue 26)
+    era = {"default": dataclasses.replace(ppo.PRESETS["default"], epochs=2), "paper": ppo.PRESETS["paper"]}
+    assert era == ppo.OVERRIDES_ERA_PRESETS
+    then = load_experiment(_service_doc(hidden=32, epochs=2)).to_dict()
+    run_dir = _saved(tmp_path, {**then, "ppo": {"hidden": 32}})
     with pytest.raises(RunError, match=r"ppo\.epochs: '<unset>' -> 2"):  # the text alone is not what it ran
-        check_resume(run_dir, today, RESUME_MAY_CHANGE)
-    check_resume(run_dir, today, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+        check_resume(run_dir, then, RESUME_MAY_CHANGE)
+    check_resume(run_dir, then, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
     with pytest.raises(RunError, match=r"ppo\.hidden: 32 -> 128"):  # its own override still counts
-        check_resume(run_dir, load_experiment(_service_doc()).to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document)
-
-    monkeypatch.setitem(ppo.PRESETS, "default", dataclasses.replace(ppo.PRESETS["default"], epochs=4))
-    moved = load_experiment(_service_doc(hidden=32)).to_dict()
-    with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4"):
-        check_resume(run_dir, moved, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
-    check_resume(
-        run_dir, load_experiment(_service_doc(hidden=32, epochs=2)).to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document
-    )
+        check_resume(
+            run_dir, load_experiment(_service_doc(epochs=2)).to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document
+        )
+    today = load_experiment(_service_doc(hidden=32)).to_dict()
+    with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4"):  # today's default is not what it ran with
+        check_resume(run_dir, today, RESUME_MAY_CHANGE, ppo.saved_ppo_document)

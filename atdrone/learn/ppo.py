@@ -36,7 +36,7 @@ class PPOConfig:
 
     num_envs: int = 64
     rollout_steps: int = 128
-    epochs: int = 2
+    epochs: int = 4  # 2 until issue 26: 4 reaches 70 % SUC on 4p2e1o in 88 s (median of 7 seeds) against 151 s
     minibatch_size: int = 4096
     lr: float = 3e-4
     lr_schedule: Literal["constant", "linear"] = "linear"
