@@ -146,10 +146,10 @@ def test_the_decoder_loss_is_a_kl_for_networks_and_a_log_likelihood_for_rules():
     m, s = float(mean[0, 0]), float(log_std[0, 0].exp())
     learned = torch.tensor([[[0.3, 0.5, 0.8]]])  # executed turn (ignored), mean 0.5, std 0.8
     kl = np.log(s / 0.8) + (0.8**2 + (0.5 - m) ** 2) / (2 * s**2) - 0.5
-    assert float(model.decoder_loss(x, learned)) == pytest.approx(kl, rel=1e-5)
+    assert model.decoder_loss(x, learned).item() == pytest.approx(kl, rel=1e-5)
     rule = torch.tensor([[[0.3, float("nan"), float("nan")]]])
     nll = np.log(s) + (0.3 - np.tanh(m)) ** 2 / (2 * s**2) + 0.5 * np.log(2 * np.pi)
-    assert float(model.decoder_loss(x, rule)) == pytest.approx(nll, rel=1e-5)
+    assert model.decoder_loss(x, rule).item() == pytest.approx(nll, rel=1e-5)
 
 
 def test_the_mappo_actor_never_reads_the_global_state(monkeypatch):
