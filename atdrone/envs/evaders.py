@@ -136,11 +136,13 @@ def move_evaders(
     """Advance active evaders by ``step`` metres along ``heading``; slide or stop at obstacles."""
     delta = (step * active)[..., None] * np.stack([np.cos(heading), np.sin(heading)], -1)
     cand = pos_e + delta
-    dist, normal = signed_distances(cand, geo)
-    near_d, n = pick_nearest(dist, normal)
-    blocked = near_d < p.body_margin
+    blocked = obstacle_distances(cand, geo).min(-1) < p.body_margin
     if not blocked.any():
         return cand
-    slid = cand - np.minimum((delta * n).sum(-1), 0.0)[..., None] * n
+    # Only the blocked evaders need the nearest obstacle's normal: work out theirs alone.
+    moved, d = cand[blocked], delta[blocked]
+    n = pick_nearest(*signed_distances(moved, geo))[1]
+    slid = moved - np.minimum((d * n).sum(-1), 0.0)[..., None] * n
     slid_ok = obstacle_distances(slid, geo).min(-1) >= p.body_margin
-    return np.where(blocked[..., None], np.where(slid_ok[..., None], slid, pos_e), cand)
+    cand[blocked] = np.where(slid_ok[..., None], slid, pos_e[blocked])
+    return cand

@@ -61,8 +61,7 @@ class Geometry:
 
 
 NUM_WALLS = 4  # the first entries of Geometry.names
-_WALL_NX = np.array([1.0, -1.0, 0.0, 0.0])
-_WALL_NY = np.array([0.0, 0.0, 1.0, -1.0])
+_WALL_NORMALS = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
 
 
 def signed_distances(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
@@ -81,38 +80,52 @@ def obstacle_distances(points: np.ndarray, geo: Geometry) -> np.ndarray:
 
 
 def _sdf(points: np.ndarray, geo: Geometry, normals: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    x, y = points[..., 0], points[..., 1]
-    dists = [np.stack([x, geo.width - x, y, geo.height - y], -1)]
-    nx = [np.broadcast_to(_WALL_NX, dists[0].shape)]
-    ny = [np.broadcast_to(_WALL_NY, dists[0].shape)]
-    if len(geo.box_half):
-        rx = x[..., None] - geo.box_center[:, 0]
-        ry = y[..., None] - geo.box_center[:, 1]
-        qx = np.abs(rx) - geo.box_half[:, 0]
-        qy = np.abs(ry) - geo.box_half[:, 1]
+    """Worked out as (obstacles, points) arrays with the points innermost, so numpy's inner loops run over
+    every point (a broadcast over a short trailing obstacle axis is several times slower), then written
+    into the (..., K) outputs obstacle by obstacle."""
+    shape = points.shape[:-1]
+    flat = points.reshape(-1, 2)
+    x, y = np.ascontiguousarray(flat[:, 0]), np.ascontiguousarray(flat[:, 1])
+    dist = np.empty((len(x), geo.num_obstacles))
+    normal = np.empty((len(x), geo.num_obstacles, 2)) if normals else None
+    dist[:, 0] = x
+    dist[:, 1] = geo.width - x
+    dist[:, 2] = y
+    dist[:, 3] = geo.height - y
+    if normal is not None:
+        normal[:, :NUM_WALLS] = _WALL_NORMALS
+    k0, k1 = NUM_WALLS, NUM_WALLS + len(geo.box_half)
+    if k1 > k0:
+        rx = x - geo.box_center[:, :1]  # (Kb, M)
+        ry = y - geo.box_center[:, 1:]
+        qx = np.abs(rx) - geo.box_half[:, :1]
+        qy = np.abs(ry) - geo.box_half[:, 1:]
         ox, oy = np.maximum(qx, 0.0), np.maximum(qy, 0.0)
         out_len = np.sqrt(ox * ox + oy * oy)
-        dists.append(out_len + np.minimum(np.maximum(qx, qy), 0.0))
-        if normals:
+        _put(dist, k0, out_len + np.minimum(np.maximum(qx, qy), 0.0))
+        if normal is not None:
             sx, sy = np.sign(rx), np.sign(ry)
             outside = out_len > 0
             inv = 1.0 / np.maximum(out_len, 1e-12)
             axis_x = qx >= qy
-            nx.append(np.where(outside, sx * ox * inv, sx * axis_x))
-            ny.append(np.where(outside, sy * oy * inv, sy * ~axis_x))
+            _put(normal[..., 0], k0, np.where(outside, sx * ox * inv, sx * axis_x))
+            _put(normal[..., 1], k0, np.where(outside, sy * oy * inv, sy * ~axis_x))
     if len(geo.disc_radius):
-        rx = x[..., None] - geo.disc_center[:, 0]
-        ry = y[..., None] - geo.disc_center[:, 1]
+        rx = x - geo.disc_center[:, :1]  # (Kd, M)
+        ry = y - geo.disc_center[:, 1:]
         length = np.sqrt(rx * rx + ry * ry)
-        dists.append(length - geo.disc_radius)
-        if normals:
+        _put(dist, k1, length - geo.disc_radius[:, None])
+        if normal is not None:
             inv = 1.0 / np.maximum(length, 1e-12)
-            nx.append(np.where(length > 0, rx * inv, 1.0))
-            ny.append(ry * inv)
-    dist = np.concatenate(dists, -1)
-    if not normals:
-        return dist, None
-    return dist, np.stack([np.concatenate(nx, -1), np.concatenate(ny, -1)], -1)
+            _put(normal[..., 0], k1, np.where(length > 0, rx * inv, 1.0))
+            _put(normal[..., 1], k1, ry * inv)
+    return dist.reshape(*shape, -1), None if normal is None else normal.reshape(*shape, -1, 2)
+
+
+def _put(out: np.ndarray, k0: int, values: np.ndarray) -> None:
+    """out[:, k0 + i] = values[i] for each row i of ``values`` (obstacles, points)."""
+    for i, row in enumerate(values):
+        out[:, k0 + i] = row
 
 
 def nearest_obstacle(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +136,9 @@ def nearest_obstacle(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.
 
 def pick_nearest(dist: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Reduce (..., K) distances and (..., K, 2) normals to the nearest obstacle's."""
-    k = dist.argmin(-1)[..., None]
-    d = np.take_along_axis(dist, k, -1)[..., 0]
-    n = np.take_along_axis(normal, k[..., None], -2)[..., 0, :]
-    return d, n
+    k = dist.argmin(-1)
+    rows = np.arange(k.size)
+    flat = dist.reshape(-1, dist.shape[-1])
+    return flat[rows, k.ravel()].reshape(k.shape), normal.reshape(-1, *normal.shape[-2:])[rows, k.ravel()].reshape(
+        *k.shape, 2
+    )
