@@ -58,13 +58,14 @@ Arguments
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cache
 from typing import Any
 
 import numpy as np
 
 from atdrone.config import TaskConfig, load_task
 from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
-from atdrone.envs.geometry import Geometry, signed_distances
+from atdrone.envs.geometry import Geometry, signed_distances, take_obstacle
 from atdrone.envs.kinematics import advance, turn
 from atdrone.envs.observation import (
     DIST_SCALE as DIST_SCALE,
@@ -137,7 +138,7 @@ def spawn(
         return draw(g, rp.x, (m, pl.num_p)) + rp.x_step * np.arange(pl.num_p), draw(g, rp.y, (m, pl.num_p))
 
     px, py = pursuers(rng, n)
-    i, j = np.triu_indices(pl.num_p, 1)
+    i, j = _pairs(pl.num_p).T
     for _ in range(max_tries):
         close = (np.hypot(px[:, i] - px[:, j], py[:, i] - py[:, j]) < cfg.task.collision_distance).any(-1)
         if not close.any():
@@ -147,6 +148,23 @@ def spawn(
     ey = draw(rng, re.y, (n, pl.num_e))
     pos = np.stack([np.concatenate([px, ex], 1), np.concatenate([py, ey], 1)], -1)
     return pos, np.full((n, pl.num_p + pl.num_e), np.pi / 2)
+
+
+@cache
+def _pairs(num_p: int) -> np.ndarray:
+    """(pairs, 2) the pursuer pairs i < j in ``np.triu_indices`` order (read-only, shared)."""
+    pairs = np.stack(np.triu_indices(num_p, 1), 1)
+    pairs.flags.writeable = False
+    return pairs
+
+
+@cache
+def _incidence(pairs: bytes, num_p: int) -> np.ndarray:
+    """(pairs, P) int64: 1 where a pursuer is one of a pair (``pairs`` as the bytes of an int (pairs, 2) array)."""
+    pair_array = np.frombuffer(pairs, dtype=np.intp).reshape(-1, 2)
+    member = (pair_array[:, :, None] == np.arange(num_p)).any(1).astype(np.int64)
+    member.flags.writeable = False
+    return member
 
 
 def evader_distances(pos: np.ndarray, num_p: int) -> np.ndarray:
@@ -208,8 +226,8 @@ class Judgement:
     captured_now (B, E) caught by this judgement; captured (B, E) after it;
     evader_distance (B, E) nearest-pursuer distance; pair_distance and hit_pairs (B, pairs)
     in ``pairs`` order; hit_obstacle (B, P) index into ``geometry.names`` (-1 none);
-    collided (B, P) pursuers in a collision; obstacles: the pursuers' signed distances
-    and normals (for the observation).
+    collided (B, P) pursuers in a collision; obstacles: the distance (B, P) and normal
+    (B, P, 2) of each pursuer's nearest obstacle or wall (for the observation).
     """
 
     captured_now: np.ndarray
@@ -228,18 +246,17 @@ def judge(
     """Which evaders are caught and which pursuers collide at positions ``pos`` (B, N, 2), pursuers first."""
     P, task = cfg.players.num_p, cfg.task
     if pairs is None:
-        pairs = np.stack(np.triu_indices(P, 1), 1)
+        pairs = _pairs(P)
     dist_pe = evader_distances(pos, P)
     newly = ~captured & (dist_pe < task.capture_range)
     pos_p = pos[:, :P]
     i, j = pairs.T
     pair_d = np.sqrt((pos_p[:, i, 0] - pos_p[:, j, 0]) ** 2 + (pos_p[:, i, 1] - pos_p[:, j, 1]) ** 2)
     pair_hit = pair_d < task.collision_distance
-    obstacles = signed_distances(pos_p, geometry)
-    nearest = obstacles[0].argmin(-1)
-    hit = np.take_along_axis(obstacles[0], nearest[..., None], -1)[..., 0] < task.safe_radius
-    member = (pairs[:, :, None] == np.arange(P)).any(1).astype(np.int64)  # (pairs, P) incidence
-    in_pair = (pair_hit.astype(np.int64) @ member) > 0
+    nearest = (dist := signed_distances(pos_p, geometry))[0].argmin(-1)
+    obstacles = take_obstacle(*dist, nearest)
+    hit = obstacles[0] < task.safe_radius
+    in_pair = (pair_hit.astype(np.int64) @ _incidence(np.asarray(pairs, dtype=np.intp).tobytes(), P)) > 0
     return Judgement(
         captured_now=newly,
         captured=captured | newly,
@@ -268,7 +285,7 @@ class BatchedPursuit:
         self.escape = EscapeParams()
         self.root = root_key(seed)  # the episode keys' root
         self.next_episode = 0  # the number of the next episode a reset or an auto-reset starts
-        self.pairs = np.stack(np.triu_indices(self.num_p, 1), 1)  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
+        self.pairs = _pairs(self.num_p).copy()  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
         self.state = self._fresh_state(np.arange(self.num_envs))  # what reset() starts
         self._obs: np.ndarray | None = None
         # the whole batch just before the last auto-reset (to show how episodes ended)
@@ -359,7 +376,7 @@ class BatchedPursuit:
     ) -> np.ndarray:
         """Observations (B, num_p, obs_dim) float32 of ``state`` (default: current): :func:`observe` of its poses.
 
-        ``obstacles``: the pursuers' signed distances and normals, when already known.
+        ``obstacles``: the distance and normal of each pursuer's nearest obstacle, when already known.
         """
         return observe(self.poses(state), obstacles)
 

@@ -136,9 +136,11 @@ def nearest_obstacle(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.
 
 def pick_nearest(dist: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Reduce (..., K) distances and (..., K, 2) normals to the nearest obstacle's."""
-    k = dist.argmin(-1)
-    rows = np.arange(k.size)
-    flat = dist.reshape(-1, dist.shape[-1])
-    return flat[rows, k.ravel()].reshape(k.shape), normal.reshape(-1, *normal.shape[-2:])[rows, k.ravel()].reshape(
-        *k.shape, 2
-    )
+    return take_obstacle(dist, normal, dist.argmin(-1))
+
+
+def take_obstacle(dist: np.ndarray, normal: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (...) and normal (..., 2) of obstacle ``k`` (...) from (..., K) distances and (..., K, 2) normals."""
+    rows, cols = np.arange(k.size), k.ravel()
+    d = dist.reshape(-1, dist.shape[-1])[rows, cols].reshape(k.shape)
+    return d, normal.reshape(-1, *normal.shape[-2:])[rows, cols].reshape(*k.shape, 2)

@@ -22,7 +22,7 @@ from functools import cache
 import numpy as np
 
 from atdrone.config import TaskConfig, load_task
-from atdrone.envs.geometry import Geometry, pick_nearest, signed_distances
+from atdrone.envs.geometry import Geometry, nearest_obstacle
 
 OBS_LAYOUT_VERSION = 1
 ENTITY_FEATURES = 4
@@ -114,34 +114,35 @@ def _layout(num_p: int, num_e: int) -> tuple[tuple[np.ndarray, np.ndarray], np.n
     return index, slots
 
 
-def _relative(pos_from: np.ndarray, heading: np.ndarray, pos_to: np.ndarray) -> tuple[np.ndarray, ...]:
+def _relative(
+    pos_from: np.ndarray, hx: np.ndarray, hy: np.ndarray, pos_to: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Distance, sin and cos of the bearing from each ``from`` to each ``to``.
 
-    pos_from (B, P, 2), heading (B, P), pos_to (B, M, 2) -> three (B, P, M) arrays.
+    pos_from (B, P, 2), heading cos and sin hx, hy (B, P), pos_to (B, M, 2) -> three (B, P, M) arrays.
     """
     dx = pos_to[:, None, :, 0] - pos_from[:, :, None, 0]
     dy = pos_to[:, None, :, 1] - pos_from[:, :, None, 1]
     dist = np.sqrt(dx * dx + dy * dy)
     inv = 1.0 / np.maximum(dist, 1e-12)
-    hx, hy = np.cos(heading)[..., None], np.sin(heading)[..., None]
+    hx, hy = hx[..., None], hy[..., None]
     return dist, (hx * dy - hy * dx) * inv, (hx * dx + hy * dy) * inv
 
 
 def observe(poses: Poses, obstacles: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Observations (B, num_p, obs_dim) float32 of every pursuer in ``poses`` (layout above).
 
-    ``obstacles``: the pursuers' signed distances and normals
-    (:func:`~atdrone.envs.geometry.signed_distances`), when already known.
+    ``obstacles``: the distance (B, P) and normal (B, P, 2) of each pursuer's nearest obstacle
+    or wall (:func:`~atdrone.envs.geometry.nearest_obstacle`), when already known.
     """
     a = poses.arena
     P, E, B = a.num_p, a.num_e, poses.pos.shape[0]
     pos_p, head_p = poses.pos[:, :P], poses.heading[:, :P]
-    d, sn, cs = _relative(pos_p, head_p, poses.pos)  # (B, P, N)
+    hx, hy = np.cos(head_p), np.sin(head_p)
+    d, sn, cs = _relative(pos_p, hx, hy, poses.pos)  # (B, P, N)
     mask = d <= a.reception_range
     mask[:, :, P:] &= ~poses.captured[:, None, :]
-    od, on = obstacles if obstacles is not None else signed_distances(pos_p, a.geometry)
-    o_d, o_n = pick_nearest(od, on)
-    hx, hy = np.cos(head_p), np.sin(head_p)
+    o_d, o_n = obstacles if obstacles is not None else nearest_obstacle(pos_p, a.geometry)
     tx, ty = -o_n[..., 0], -o_n[..., 1]  # towards the obstacle
     out = np.empty((B, P, E + P, ENTITY_FEATURES), dtype=np.float32)
     (rows, ents), slots = _layout(P, E)

@@ -10,6 +10,9 @@ operations. :class:`RowStream` offers the Generator calls the simulator makes
 
 from __future__ import annotations
 
+import math
+from functools import cache
+
 import numpy as np
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -28,15 +31,31 @@ SPAWN_DRAWS = 1 << 62
 
 def mix(x: np.ndarray) -> np.ndarray:
     """The splitmix64 finaliser of uint64 array ``x`` (a bijection that scrambles every bit)."""
-    x = (x ^ (x >> _S30)) * _M1
-    x = (x ^ (x >> _S27)) * _M2
-    return x ^ (x >> _S31)
+    x = x ^ (x >> _S30)  # a new array: ``x`` is left alone; the rest works in place (integer ops, exact)
+    x *= _M1
+    x ^= x >> _S27
+    x *= _M2
+    x ^= x >> _S31
+    return x
 
 
 def fold(keys: np.ndarray, counter: int | np.ndarray) -> np.ndarray:
     """New keys from ``keys`` and a counter (broadcast): distinct counters give unrelated keys."""
     c = np.atleast_1d(np.asarray(counter, dtype=np.uint64))
-    return mix(np.asarray(keys, dtype=np.uint64) ^ mix((c + np.uint64(1)) * _GOLDEN))
+    return _fold_mixed(keys, mix((c + np.uint64(1)) * _GOLDEN))
+
+
+def _fold_mixed(keys: np.ndarray, mixed_counter: np.ndarray) -> np.ndarray:
+    """:func:`fold` with its counter already mixed."""
+    return mix(np.asarray(keys, dtype=np.uint64) ^ mixed_counter)
+
+
+@cache
+def _mixed_range(width: int) -> np.ndarray:
+    """The mixed counters 0 .. width - 1 of :func:`fold` (read-only, shared)."""
+    out = mix((np.arange(width, dtype=np.uint64) + np.uint64(1)) * _GOLDEN)
+    out.flags.writeable = False
+    return out
 
 
 def root_key(seed: int | None) -> np.uint64:
@@ -79,8 +98,7 @@ class RowStream:
             raise ValueError(f"a RowStream of {len(self.keys)} rows cannot draw size {size}")
         call = fold(self.keys, self._calls)
         self._calls += 1
-        width = int(np.prod(size[1:], dtype=np.int64))
-        return fold(call[:, None], np.arange(width, dtype=np.uint64)).reshape(size)
+        return _fold_mixed(call[:, None], _mixed_range(math.prod(size[1:]))).reshape(size)
 
     def random(self, size: tuple[int, ...]) -> np.ndarray:
         """Uniform floats in [0, 1) of shape ``size``."""
