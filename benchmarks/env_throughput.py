@@ -3,18 +3,32 @@
 Prints JSON. Usage: python benchmarks/env_throughput.py [--task 4p2e5o] [--seconds 3]
 The targets (issue 2): best BatchedPursuit >= 100x MPE2 simple_tag, PettingZoo view at
 one env >= MPE2 simple_tag.
+
+With ``--reference DIR`` (a checkout of another commit, e.g. ``git worktree add --detach
+/tmp/before <commit>``) it measures BatchedPursuit of both trees on ``--tasks`` x
+``--num-envs`` in alternating subprocess rounds, each with its own code on PYTHONPATH, and
+MPE2 simple_tag in the same rounds, and prints the ratios this tree / reference (issue 26:
+>= 1.3x) and this tree / MPE2.
+Usage: python benchmarks/env_throughput.py --reference DIR [--rounds 3] [--tasks ...] [--num-envs 256 4096]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+HERE = Path(__file__).resolve().parent.parent
+TASKS = ("4p2e1o", "4p2e3o", "4p2e5o", "4p3e5o")
 
 
 def _rate(step: Callable[[int], int], seconds: float) -> float:
@@ -78,12 +92,100 @@ def mpe2_simple_tag(seconds: float) -> float:
     return parallel_env_rate(env, actions, seconds)
 
 
+def _tree_rates(tree: Path, tasks: list[str], num_envs: list[int], seconds: float) -> dict[str, Any]:
+    """BatchedPursuit env-steps/s of ``tree``'s code (first on PYTHONPATH), measured by this script in a subprocess."""
+    sizes = [str(n) for n in num_envs]
+    cmd = [
+        sys.executable,
+        __file__,
+        "--batched-only",
+        "--tasks",
+        *tasks,
+        "--seconds",
+        str(seconds),
+        "--num-envs",
+        *sizes,
+    ]
+    out = subprocess.run(
+        cmd,
+        cwd=tree,
+        env={**os.environ, "PYTHONPATH": str(tree)},
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    result: dict[str, Any] = json.loads(out.stdout)
+    if not Path(result["atdrone"]).is_relative_to(tree):
+        raise RuntimeError(f"measured {result['atdrone']}, not the code of {tree}")
+    return result
+
+
+def compare(reference: Path, tasks: list[str], num_envs: list[int], seconds: float, rounds: int) -> dict[str, Any]:
+    """Both trees' BatchedPursuit and MPE2 simple_tag in alternating rounds; means, ratios and every round."""
+    trees = {"this": HERE, "reference": reference.resolve()}
+    runs: dict[str, list[dict[str, dict[str, float]]]] = {"this": [], "reference": []}
+    mpe: list[float] = []
+    for r in range(rounds):
+        order = ("this", "reference") if r % 2 == 0 else ("reference", "this")
+        for name in order:
+            runs[name].append(_tree_rates(trees[name], tasks, num_envs, seconds)["batched_pursuit"])
+        mpe.append(mpe2_simple_tag(seconds))
+    mpe_mean = float(np.mean(mpe))
+    table: dict[str, dict[str, Any]] = {}
+    for task in tasks:
+        for n in map(str, num_envs):
+            this = float(np.mean([run[task][n] for run in runs["this"]]))
+            ref = float(np.mean([run[task][n] for run in runs["reference"]]))
+            table[f"{task}/{n}"] = {
+                "this": round(this, 1),
+                "reference": round(ref, 1),
+                "ratio_this_over_reference": round(this / ref, 3),
+                "ratio_this_over_mpe2": round(this / mpe_mean, 1),
+                "rounds_this": [round(run[task][n], 1) for run in runs["this"]],
+                "rounds_reference": [round(run[task][n], 1) for run in runs["reference"]],
+            }
+    ratios = [row["ratio_this_over_reference"] for row in table.values()]
+    return {
+        "reference": str(reference),
+        "rounds": rounds,
+        "seconds_per_measurement": seconds,
+        "mpe2_simple_tag": {"mean": round(mpe_mean, 1), "rounds": [round(v, 1) for v in mpe]},
+        "batched_pursuit": table,
+        "ratio_this_over_reference": {
+            "min": round(min(ratios), 3),
+            "geometric_mean": round(float(np.exp(np.mean(np.log(ratios)))), 3),
+            "max": round(max(ratios), 3),
+        },
+        "target_ratio": 1.3,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="4p2e5o")
     parser.add_argument("--seconds", type=float, default=3.0, help="measuring time per configuration")
-    parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 64, 1024, 4096])
+    parser.add_argument(
+        "--num-envs", type=int, nargs="+", default=None, help="default 1 64 1024 4096; 256 4096 with --reference"
+    )
+    parser.add_argument("--reference", type=Path, default=None, help="another checkout to compare with")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per tree with --reference")
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), help="the tasks measured with --reference")
+    parser.add_argument("--batched-only", action="store_true", help=argparse.SUPPRESS)  # one tree's round
     args = parser.parse_args()
+    machine = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()}
+    if args.batched_only:
+        import atdrone
+
+        rates = {t: {str(n): round(batched(t, n, args.seconds), 1) for n in args.num_envs} for t in args.tasks}
+        print(json.dumps({"atdrone": atdrone.__file__, "batched_pursuit": rates}))
+        return
+    if args.reference is not None:
+        num_envs = args.num_envs or [256, 4096]
+        result: dict[str, Any] = {"benchmark": "env_throughput", "unit": "env-steps/s", "machine": machine}
+        result.update(compare(args.reference, args.tasks, num_envs, args.seconds, args.rounds))
+        print(json.dumps(result, indent=2))
+        return
+    args.num_envs = args.num_envs or [1, 64, 1024, 4096]
     mpe = mpe2_simple_tag(args.seconds)
     ours = {str(n): batched(args.task, n, args.seconds) for n in args.num_envs}
     pz = pettingzoo_view(args.task, args.seconds)
@@ -92,7 +194,7 @@ def main() -> None:
         "benchmark": "env_throughput",
         "task": args.task,
         "unit": "env-steps/s",
-        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
+        "machine": machine,
         "batched_pursuit": {n: round(v, 1) for n, v in ours.items()},
         "pettingzoo_view_1env": round(pz, 1),
         "mpe2_simple_tag": round(mpe, 1),
