@@ -154,7 +154,14 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         plt.close("all")
 
 
-TINY_BENCHMARK_PPO = {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16}
+TINY_BENCHMARK_PPO = {
+    "epochs": 2,
+    "entity_dim": 16,
+    "hidden": 32,
+    "minibatch_size": 64,
+    "num_envs": 8,
+    "rollout_steps": 16,
+}
 
 
 def tiny_benchmark(tmp_path: Path, name: str) -> dict[str, Any]:

@@ -33,7 +33,9 @@ TASK = load_task("4p2e1o")
 # ------------------------------------------------------------------ a rollout worker killed mid-collect
 def _job() -> tuple[RolloutJob, list[Any]]:
     """A job against a greedy and a Vicsek drone (drawn per slot and episode) and 5 updates' distinct weights."""
-    ppo = ppo_config({"entity_dim": 8, "hidden": 16, "num_envs": 8, "rollout_steps": 192, "minibatch_size": 64})
+    ppo = ppo_config(
+        {"epochs": 2, "entity_dim": 8, "hidden": 16, "num_envs": 8, "rollout_steps": 192, "minibatch_size": 64}
+    )
     zoo = (MemberSpec("greedy", "greedy"), MemberSpec("vicsek", "vicsek"))
     specs = [LearnerSpec(ppo=ppo, num_e=2, num_p=4, seed=s, total_updates=5) for s in range(5)]
     weights = [ray.put(Learner(spec).get_weights()) for spec in specs]
@@ -125,7 +127,7 @@ FAULTY = {
     "final_episodes": 4,
     "gif": False,
     "hola": {"pi0_seeds": 1, "pi0_levels": 2, "min_episodes": 4, "max_episodes": 8},
-    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 4, "rollout_steps": 16},
+    "ppo": {"epochs": 2, "entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 4, "rollout_steps": 16},
 }
 # (side, target, when, nth, generation saved after the kill) in the order a run meets them; each kill is
 # resumed by the next entry's driver

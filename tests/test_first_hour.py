@@ -222,7 +222,7 @@ def _train_config(tmp_path: Path, **overrides: object) -> Path:
         "eval_episodes": 4,
         "checkpoint_every": 1,
         "out_dir": str(tmp_path / "runs"),
-        "ppo": {"num_envs": 8, "rollout_steps": 16, "minibatch_size": 64, "hidden": 32, "entity_dim": 16},
+        "ppo": {"epochs": 2, "num_envs": 8, "rollout_steps": 16, "minibatch_size": 64, "hidden": 32, "entity_dim": 16},
         **overrides,
     }
     path = tmp_path / "ctrl_c.json"

@@ -37,7 +37,7 @@ TINY_TRAIN = {
     "total_env_steps": 512,
     "eval_every": 1000,
     "eval_episodes": 4,
-    "ppo": {"num_envs": 8, "rollout_steps": 32, "minibatch_size": 256, "entity_dim": 16, "hidden": 32},
+    "ppo": {"epochs": 2, "num_envs": 8, "rollout_steps": 32, "minibatch_size": 256, "entity_dim": 16, "hidden": 32},
 }
 TINY_SERVICE = {
     "task": "4p2e1o",
@@ -50,7 +50,7 @@ TINY_SERVICE = {
     "final_episodes": 4,
     "gif": False,
     "hola": {"pi0_seeds": 1, "pi0_levels": 2, "min_episodes": 4, "max_episodes": 8},
-    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
+    "ppo": {"epochs": 2, "entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
 }
 
 

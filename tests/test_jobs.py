@@ -38,7 +38,8 @@ TRAIN = REPO / "jobs" / "train.py"
 EXCLUDES = [".venv", "runs", "*.db", ".git", "mlruns", "demo_out", "eval_out"]
 # a one-generation HOLA-Drone V2 run small enough for a 2-core machine
 TINY_TRAIN = (
-    '--generations 1 --updates-per-generation 2 --num-workers 1 --ppo \'{"num_envs": 4, "rollout_steps": 16}\' '
+    "--generations 1 --updates-per-generation 2 --num-workers 1 "
+    '--ppo \'{"epochs": 2, "num_envs": 4, "rollout_steps": 16}\' '
     "--eval-episodes 2 --final-episodes 2 --final-zoo zoo1 --no-gif"
 )
 

@@ -22,7 +22,7 @@ TINY = {
     "eval_episodes": 4,
     "final_zoo": "",
     "gif": False,
-    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
+    "ppo": {"epochs": 2, "entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
 }
 
 

@@ -175,7 +175,7 @@ def _tiny(tmp_path, **kw):
         "eval_every": 1000,
         "eval_episodes": 4,
         "out_dir": str(tmp_path),
-        "ppo": {"num_envs": 8, "rollout_steps": 32, "minibatch_size": 256, "entity_dim": 16, "hidden": 32},
+        "ppo": {"epochs": 2, "num_envs": 8, "rollout_steps": 32, "minibatch_size": 256, "entity_dim": 16, "hidden": 32},
     }
     doc.update(kw)
     return load_train_config(doc)
@@ -260,7 +260,7 @@ def test_train_config_errors_name_the_field(tmp_path):
 
 
 def test_seeded_short_self_play_run_learns_beyond_a_no_learning_control(tmp_path):
-    """14 updates of seed 0, and the same run with learning rate 0 (the policy never moves; the same episodes'
+    """14 updates (2 epochs each) of seed 0, and the same run with learning rate 0 (the policy never moves; the same episodes'
     drift: early episodes are the short collisions, so even a fixed policy's mean return rises).
 
     Measured, late-minus-early mean return (last 3 vs first 3 updates), seeds 0-4: learning +2.77, +2.76,
@@ -270,7 +270,7 @@ def test_seeded_short_self_play_run_learns_beyond_a_no_learning_control(tmp_path
     """
     deltas = {}
     for name in ("learn", "control"):
-        ppo = {"num_envs": 32, "rollout_steps": 64, "minibatch_size": 1024, "lr": 1e-3}
+        ppo = {"epochs": 2, "num_envs": 32, "rollout_steps": 64, "minibatch_size": 1024, "lr": 1e-3}
         trainer = Trainer(_tiny(tmp_path / name, seed=0, ppo=ppo))
         start = {k: v.clone() for k, v in trainer.model.state_dict().items()}
         if name == "control":

@@ -35,7 +35,7 @@ TINY: dict[str, Any] = {
     "final_zoo": "zoo1",
     "final_episodes": 4,
     "gif": False,
-    "ppo": {"entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
+    "ppo": {"epochs": 2, "entity_dim": 16, "hidden": 32, "minibatch_size": 64, "num_envs": 8, "rollout_steps": 16},
 }
 
 
