@@ -260,8 +260,9 @@ def test_train_config_errors_name_the_field(tmp_path):
 
 
 def test_seeded_short_self_play_run_learns_beyond_a_no_learning_control(tmp_path):
-    """14 updates (2 epochs each) of seed 0, and the same run with learning rate 0 (the policy never moves; the same episodes'
-    drift: early episodes are the short collisions, so even a fixed policy's mean return rises).
+    """14 updates (2 epochs each) of seed 0, and the same run with learning rate 0 (the policy never moves;
+    the same episodes' drift: early episodes are the short collisions, so even a fixed policy's mean return
+    rises).
 
     Measured, late-minus-early mean return (last 3 vs first 3 updates), seeds 0-4: learning +2.77, +2.76,
     +3.26, +2.57, +2.82; the control -0.40, +0.67, +0.52, +0.56, +0.34 (sd 0.43); learning minus control
