@@ -69,31 +69,38 @@ def signed_distances(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.
 
     points: (..., 2). Returns dist (..., K) and normal (..., K, 2), K = geo.num_obstacles.
     """
-    dist, normal = _sdf(points, geo, normals=True)
-    assert normal is not None
-    return dist, normal
+    dist, nx, ny = obstacle_columns(points.reshape(-1, 2), geo, normals=True)
+    assert nx is not None and ny is not None
+    shape = points.shape[:-1]
+    return np.ascontiguousarray(dist.T).reshape(*shape, -1), np.stack([nx.T, ny.T], -1).reshape(*shape, -1, 2)
 
 
 def obstacle_distances(points: np.ndarray, geo: Geometry) -> np.ndarray:
     """Signed distances (..., K) from every obstacle to every point, without normals."""
-    return _sdf(points, geo, normals=False)[0]
+    return np.ascontiguousarray(obstacle_columns(points.reshape(-1, 2), geo, normals=False)[0].T).reshape(
+        *points.shape[:-1], -1
+    )
 
 
-def _sdf(points: np.ndarray, geo: Geometry, normals: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """Worked out as (obstacles, points) arrays with the points innermost, so numpy's inner loops run over
-    every point (a broadcast over a short trailing obstacle axis is several times slower), then written
-    into the (..., K) outputs obstacle by obstacle."""
-    shape = points.shape[:-1]
-    flat = points.reshape(-1, 2)
-    x, y = np.ascontiguousarray(flat[:, 0]), np.ascontiguousarray(flat[:, 1])
-    dist = np.empty((len(x), geo.num_obstacles))
-    normal = np.empty((len(x), geo.num_obstacles, 2)) if normals else None
-    dist[:, 0] = x
-    dist[:, 1] = geo.width - x
-    dist[:, 2] = y
-    dist[:, 3] = geo.height - y
-    if normal is not None:
-        normal[:, :NUM_WALLS] = _WALL_NORMALS
+def obstacle_columns(
+    points: np.ndarray, geo: Geometry, normals: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Signed distances (K, M) and, with ``normals``, the normals' x and y (K, M) of M points (M, 2).
+
+    Obstacles first, points innermost, so numpy's inner loops run over every point (a
+    broadcast over a short trailing obstacle axis is several times slower).
+    """
+    x, y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
+    dist = np.empty((geo.num_obstacles, len(x)))
+    nx = np.empty_like(dist) if normals else None
+    ny = np.empty_like(dist) if normals else None
+    dist[0] = x
+    np.subtract(geo.width, x, out=dist[1])
+    dist[2] = y
+    np.subtract(geo.height, y, out=dist[3])
+    if nx is not None and ny is not None:
+        nx[:NUM_WALLS] = np.array(_WALL_NORMALS)[:, :1]
+        ny[:NUM_WALLS] = np.array(_WALL_NORMALS)[:, 1:]
     k0, k1 = NUM_WALLS, NUM_WALLS + len(geo.box_half)
     if k1 > k0:
         rx = x - geo.box_center[:, :1]  # (Kb, M)
@@ -102,30 +109,24 @@ def _sdf(points: np.ndarray, geo: Geometry, normals: bool) -> tuple[np.ndarray, 
         qy = np.abs(ry) - geo.box_half[:, 1:]
         ox, oy = np.maximum(qx, 0.0), np.maximum(qy, 0.0)
         out_len = np.sqrt(ox * ox + oy * oy)
-        _put(dist, k0, out_len + np.minimum(np.maximum(qx, qy), 0.0))
-        if normal is not None:
+        np.add(out_len, np.minimum(np.maximum(qx, qy), 0.0), out=dist[k0:k1])
+        if nx is not None and ny is not None:
             sx, sy = np.sign(rx), np.sign(ry)
             outside = out_len > 0
             inv = 1.0 / np.maximum(out_len, 1e-12)
             axis_x = qx >= qy
-            _put(normal[..., 0], k0, np.where(outside, sx * ox * inv, sx * axis_x))
-            _put(normal[..., 1], k0, np.where(outside, sy * oy * inv, sy * ~axis_x))
+            np.copyto(nx[k0:k1], np.where(outside, sx * ox * inv, sx * axis_x))
+            np.copyto(ny[k0:k1], np.where(outside, sy * oy * inv, sy * ~axis_x))
     if len(geo.disc_radius):
         rx = x - geo.disc_center[:, :1]  # (Kd, M)
         ry = y - geo.disc_center[:, 1:]
         length = np.sqrt(rx * rx + ry * ry)
-        _put(dist, k1, length - geo.disc_radius[:, None])
-        if normal is not None:
+        np.subtract(length, geo.disc_radius[:, None], out=dist[k1:])
+        if nx is not None and ny is not None:
             inv = 1.0 / np.maximum(length, 1e-12)
-            _put(normal[..., 0], k1, np.where(length > 0, rx * inv, 1.0))
-            _put(normal[..., 1], k1, ry * inv)
-    return dist.reshape(*shape, -1), None if normal is None else normal.reshape(*shape, -1, 2)
-
-
-def _put(out: np.ndarray, k0: int, values: np.ndarray) -> None:
-    """out[:, k0 + i] = values[i] for each row i of ``values`` (obstacles, points)."""
-    for i, row in enumerate(values):
-        out[:, k0 + i] = row
+            np.copyto(nx[k1:], np.where(length > 0, rx * inv, 1.0))
+            np.multiply(ry, inv, out=ny[k1:])
+    return dist, nx, ny
 
 
 def nearest_obstacle(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
