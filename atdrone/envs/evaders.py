@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from atdrone.envs.geometry import Geometry, obstacle_distances, pick_nearest, signed_distances
+from atdrone.envs.geometry import Geometry, obstacle_columns, obstacle_distances, pick_nearest, signed_distances
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,36 @@ def _norm(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.sqrt(x * x + y * y)
 
 
+def last_axis_sum(terms: np.ndarray) -> np.ndarray:
+    """``terms.sum(0)`` rounded as numpy sums a contiguous short last axis (``np.moveaxis(terms, 0, -1).sum(-1)``).
+
+    numpy adds a row from 0.0 one term after another below 8 terms and in 8 running
+    partial sums from 8 on; adding whole (n, M) rows the same way keeps those bits with
+    long inner loops.
+    """
+    n = terms.shape[0]
+    if n < 8:
+        acc = -0.0 + terms[0]
+        for i in range(1, n):
+            acc += terms[i]
+        return 0.0 + acc
+    r = [terms[k].copy() for k in range(8)]
+    i = 8
+    while i + 8 <= n:
+        for k in range(8):
+            r[k] += terms[i + k]
+        i += 8
+    acc = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    for k in range(i, n):
+        acc += terms[k]
+    return 0.0 + acc
+
+
+def _column_pick(values: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """values[index[m], m] for every column m of (n, M) ``values``."""
+    return values[index, np.arange(values.shape[1])]
+
+
 def escape_directions(
     pos_e: np.ndarray,
     heading_e: np.ndarray,
@@ -58,43 +88,46 @@ def escape_directions(
     """Flee headings (B, E) for every evader and which evaders are calm (B, E).
 
     pos_e (B, E, 2), heading_e (B, E), pos_p (B, P, 2), active (B, E): not captured.
+    Pairs are worked out as (other, evader) arrays, the B * E evaders innermost.
     """
-    ex, ey = pos_e[..., 0], pos_e[..., 1]
-    dx = ex[:, :, None] - pos_p[:, None, :, 0]  # (B, E, P)
-    dy = ey[:, :, None] - pos_p[:, None, :, 1]
+    B, E, P = pos_e.shape[0], pos_e.shape[1], pos_p.shape[1]
+    flat = pos_e.reshape(-1, 2)
+    ex, ey = flat[:, 0], flat[:, 1]  # (M,), M = B * E
+    dx = ex - np.repeat(pos_p[:, :, 0].T, E, axis=1)  # (P, M)
+    dy = ey - np.repeat(pos_p[:, :, 1].T, E, axis=1)
     d2 = dx * dx + dy * dy
     d = np.sqrt(d2)
-    dmin = d.min(-1)
-    obs_d, obs_n = signed_distances(pos_e, geo)  # (B, E, K), (B, E, K, 2)
-    calm = (panic(dmin, p.panic_scale) < p.calm_panic) & (obs_d.min(-1) > p.calm_clearance)
+    dmin = d.min(0)
+    obs_d, obs_nx, obs_ny = obstacle_columns(flat, geo, normals=True)  # (K, M) each
+    assert obs_nx is not None and obs_ny is not None
+    calm = (panic(dmin, p.panic_scale) < p.calm_panic) & (obs_d.min(0) > p.calm_clearance)
 
     w = (d < perception) / np.maximum(d2, 1e-9)
-    fx, fy = (dx * w).sum(-1), (dy * w).sum(-1)
+    fx, fy = last_axis_sum(dx * w), last_axis_sum(dy * w)
     f = np.maximum(_norm(fx, fy), 1e-12)
     fx, fy = fx / f, fy / f
 
     # Obstacles, walls and the other active evaders (as discs) push the evader away.
-    rx = ex[:, :, None] - ex[:, None, :]  # (B, E, E)
-    ry = ey[:, :, None] - ey[:, None, :]
+    rx = ex - np.repeat(pos_e[:, :, 0].T, E, axis=1)  # (E, M): evader m from evader k of its env
+    ry = ey - np.repeat(pos_e[:, :, 1].T, E, axis=1)
     rl = np.maximum(_norm(rx, ry), 1e-12)
-    others = active[:, None, :] & ~np.eye(pos_e.shape[1], dtype=bool)
-    ee_push = np.where(
-        others, np.maximum(0.0, 1.0 / np.maximum(rl - p.evader_radius, 1e-2) - 1.0 / p.repulsion_range), 0.0
-    )
+    others = np.repeat(active.T, E, axis=1) & (np.arange(E)[:, None] != np.arange(B * E) % E)
+    ee_push = np.maximum(0.0, 1.0 / np.maximum(rl - p.evader_radius, 1e-2) - 1.0 / p.repulsion_range)
+    ee_push[~others] = 0.0
     ob_push = np.maximum(0.0, 1.0 / np.maximum(obs_d, 1e-2) - 1.0 / p.repulsion_range)
     g = p.repulsion_gain
-    ee_x, ee_y = g * (ee_push * rx / rl).sum(-1), g * (ee_push * ry / rl).sum(-1)
+    ee_x, ee_y = g * last_axis_sum(ee_push * rx / rl), g * last_axis_sum(ee_push * ry / rl)
 
     # Intent: away from the pursuers, or through the gap between the two nearest ones.
     ix, iy = fx, fy
-    if pos_p.shape[1] >= 2:
-        i1 = d.argmin(-1)[..., None]
+    if P >= 2:
+        i1 = d.argmin(0)
         d_rest = d.copy()
-        np.put_along_axis(d_rest, i1, np.inf, -1)
-        i2 = d_rest.argmin(-1)[..., None]
-        d2nd = np.take_along_axis(d_rest, i2, -1)[..., 0]
-        ax, ay = np.take_along_axis(dx, i1, -1)[..., 0], np.take_along_axis(dy, i1, -1)[..., 0]
-        bx, by = np.take_along_axis(dx, i2, -1)[..., 0], np.take_along_axis(dy, i2, -1)[..., 0]
+        d_rest[i1, np.arange(d.shape[1])] = np.inf
+        i2 = d_rest.argmin(0)
+        d2nd = _column_pick(d_rest, i2)
+        ax, ay = _column_pick(dx, i1), _column_pick(dy, i1)
+        bx, by = _column_pick(dx, i2), _column_pick(dy, i2)
         slip = (d2nd < p.slip_range) & (_norm(ax - bx, ay - by) > 2 * capture_range)
         # midpoint (pa + pb) / 2 - pos_e, with pa = pos_e - (ax, ay)
         mx, my = -(ax + bx) / 2, -(ay + by) / 2
@@ -102,32 +135,32 @@ def escape_directions(
         ix, iy = np.where(slip, mx / m, ix), np.where(slip, my / m, iy)
 
     # Free running: intent plus repulsion from obstacles, walls and other evaders.
-    vx = ix + g * (ob_push * obs_n[..., 0]).sum(-1) + ee_x
-    vy = iy + g * (ob_push * obs_n[..., 1]).sum(-1) + ee_y
+    vx = ix + g * last_axis_sum(ob_push * obs_nx) + ee_x
+    vy = iy + g * last_axis_sum(ob_push * obs_ny) + ee_y
 
     # Wall following: when the intent runs into the nearest obstacle, run along it
     # (keeping the current sense of travel when the intent is square on) and drift
     # off it gently, instead of letting the repulsion turn the evader back.
-    near_d, near_n = pick_nearest(obs_d, obs_n)
-    nx, ny = near_n[..., 0], near_n[..., 1]
+    k = obs_d.argmin(0)
+    near_d, nx, ny = _column_pick(obs_d, k), _column_pick(obs_nx, k), _column_pick(obs_ny, k)
     into = ix * nx + iy * ny
     follow = (near_d < p.follow_range) & (into < 0)
     tx, ty = -ny, nx
     along = ix * tx + iy * ty
-    sense = np.where(
-        np.abs(along) > 1e-6, np.sign(along), np.where(np.cos(heading_e) * tx + np.sin(heading_e) * ty >= 0, 1.0, -1.0)
-    )
+    head = heading_e.reshape(-1)
+    cos_h, sin_h = np.cos(head), np.sin(head)
+    sense = np.where(np.abs(along) > 1e-6, np.sign(along), np.where(cos_h * tx + sin_h * ty >= 0, 1.0, -1.0))
     off = p.follow_drift * (p.follow_range - near_d) / p.follow_range
     vx = np.where(follow, sense * tx + off * nx + ee_x, vx)
     vy = np.where(follow, sense * ty + off * ny + ee_y, vy)
 
     # Inertia: near a balance of pushes keep going rather than flip back and forth.
-    vx = vx + p.inertia * np.cos(heading_e)
-    vy = vy + p.inertia * np.sin(heading_e)
+    vx = vx + p.inertia * cos_h
+    vy = vy + p.inertia * sin_h
 
     still = (np.abs(vx) + np.abs(vy)) < 1e-12
-    heading = np.where(still, heading_e, np.arctan2(vy, vx))
-    return heading, calm
+    heading = np.where(still, head, np.arctan2(vy, vx))
+    return heading.reshape(B, E), calm.reshape(B, E)
 
 
 def move_evaders(
