@@ -65,7 +65,7 @@ import numpy as np
 
 from atdrone.config import TaskConfig, load_task
 from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
-from atdrone.envs.geometry import Geometry, signed_distances, take_obstacle
+from atdrone.envs.geometry import Geometry, obstacle_columns
 from atdrone.envs.kinematics import advance, turn
 from atdrone.envs.observation import (
     DIST_SCALE as DIST_SCALE,
@@ -168,10 +168,14 @@ def _incidence(pairs: bytes, num_p: int) -> np.ndarray:
 
 
 def evader_distances(pos: np.ndarray, num_p: int) -> np.ndarray:
-    """Nearest-pursuer distance of each evader, (B, E), from positions (B, N, 2) pursuers first."""
-    dx = pos[:, num_p:, None, 0] - pos[:, None, :num_p, 0]
-    dy = pos[:, num_p:, None, 1] - pos[:, None, :num_p, 1]
-    return np.sqrt(dx * dx + dy * dy).min(-1)
+    """Nearest-pursuer distance of each evader, (B, E), from positions (B, N, 2) pursuers first.
+
+    Worked out as (P, B * E) arrays, the evaders innermost (a short trailing pursuer axis is slow in numpy).
+    """
+    B, E = pos.shape[0], pos.shape[1] - num_p
+    dx = pos[:, num_p:, 0].reshape(-1) - np.repeat(pos[:, :num_p, 0].T, E, axis=1)
+    dy = pos[:, num_p:, 1].reshape(-1) - np.repeat(pos[:, :num_p, 1].T, E, axis=1)
+    return np.sqrt(dx * dx + dy * dy).min(0).reshape(B, E)
 
 
 @dataclass(frozen=True)
@@ -253,8 +257,14 @@ def judge(
     i, j = pairs.T
     pair_d = np.sqrt((pos_p[:, i, 0] - pos_p[:, j, 0]) ** 2 + (pos_p[:, i, 1] - pos_p[:, j, 1]) ** 2)
     pair_hit = pair_d < task.collision_distance
-    nearest = (dist := signed_distances(pos_p, geometry))[0].argmin(-1)
-    obstacles = take_obstacle(*dist, nearest)
+    dist, nx, ny = obstacle_columns(pos_p.reshape(-1, 2), geometry, normals=True)  # (K, B * P)
+    assert nx is not None and ny is not None
+    k, cols = dist.argmin(0), np.arange(dist.shape[1])
+    nearest = k.reshape(pos_p.shape[:2])
+    obstacles = (
+        dist[k, cols].reshape(nearest.shape),
+        np.stack([nx[k, cols], ny[k, cols]], -1).reshape(*nearest.shape, 2),
+    )
     hit = obstacles[0] < task.safe_radius
     in_pair = (pair_hit.astype(np.int64) @ _incidence(np.asarray(pairs, dtype=np.intp).tobytes(), P)) > 0
     return Judgement(
