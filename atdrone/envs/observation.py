@@ -103,56 +103,47 @@ class Poses:
 
 
 @cache
-def _layout(num_p: int, num_e: int) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
-    """(rows, cols) into (P, N) pairwise arrays picking each pursuer's evaders then
-    teammates, and the observation blocks they fill (the obstacle block sits between)."""
+def _entities(num_p: int, num_e: int) -> np.ndarray:
+    """(S, P) the entity (index into the N drones) each pursuer sees in each of its S = num_e + num_p - 1
+    evader and teammate blocks, in block order (the obstacle block sits between; read-only, shared)."""
     others = np.array([[j for j in range(num_p) if j != i] for i in range(num_p)], dtype=np.intp)
-    others = others.reshape(num_p, num_p - 1)
     ev = np.arange(num_p, num_p + num_e)[None].repeat(num_p, 0)
-    index = (np.arange(num_p)[:, None], np.concatenate([ev, others], 1))
-    slots = np.r_[np.arange(num_e), np.arange(num_e + 1, num_e + num_p)]
-    return index, slots
-
-
-def _relative(
-    pos_from: np.ndarray, hx: np.ndarray, hy: np.ndarray, pos_to: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Distance, sin and cos of the bearing from each ``from`` to each ``to``.
-
-    pos_from (B, P, 2), heading cos and sin hx, hy (B, P), pos_to (B, M, 2) -> three (B, P, M) arrays.
-    """
-    dx = pos_to[:, None, :, 0] - pos_from[:, :, None, 0]
-    dy = pos_to[:, None, :, 1] - pos_from[:, :, None, 1]
-    dist = np.sqrt(dx * dx + dy * dy)
-    inv = 1.0 / np.maximum(dist, 1e-12)
-    hx, hy = hx[..., None], hy[..., None]
-    return dist, (hx * dy - hy * dx) * inv, (hx * dx + hy * dy) * inv
+    ents = np.ascontiguousarray(np.concatenate([ev, others.reshape(num_p, num_p - 1)], 1).T)
+    ents.flags.writeable = False
+    return ents
 
 
 def observe(poses: Poses, obstacles: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Observations (B, num_p, obs_dim) float32 of every pursuer in ``poses`` (layout above).
 
     ``obstacles``: the distance (B, P) and normal (B, P, 2) of each pursuer's nearest obstacle
-    or wall (:func:`~atdrone.envs.geometry.nearest_obstacle`), when already known.
+    or wall (:func:`~atdrone.envs.geometry.nearest_obstacle`), when already known. Worked out as
+    (block, B, P) arrays (the long axes innermost) and transposed into place once.
     """
     a = poses.arena
     P, E, B = a.num_p, a.num_e, poses.pos.shape[0]
+    N = P + E
     pos_p, head_p = poses.pos[:, :P], poses.heading[:, :P]
     hx, hy = np.cos(head_p), np.sin(head_p)
-    d, sn, cs = _relative(pos_p, hx, hy, poses.pos)  # (B, P, N)
+    ents = _entities(P, E)
+    to = ents[:, None, :] + N * np.arange(B)[:, None]  # (S, B, P) flat indices of each block's entity
+    flat = poses.pos.reshape(-1, 2)
+    dx = flat[:, 0].take(to) - pos_p[..., 0]
+    dy = flat[:, 1].take(to) - pos_p[..., 1]
+    d = np.sqrt(dx * dx + dy * dy)
+    inv = 1.0 / np.maximum(d, 1e-12)
     mask = d <= a.reception_range
-    mask[:, :, P:] &= ~poses.captured[:, None, :]
+    mask[:E] &= ~poses.captured.T[:, :, None]
     o_d, o_n = obstacles if obstacles is not None else nearest_obstacle(pos_p, a.geometry)
     tx, ty = -o_n[..., 0], -o_n[..., 1]  # towards the obstacle
-    out = np.empty((B, P, E + P, ENTITY_FEATURES), dtype=np.float32)
-    (rows, ents), slots = _layout(P, E)
-    m = mask[:, rows, ents]
-    out[:, :, slots, 0] = m
-    out[:, :, slots, 1] = d[:, rows, ents] * (m / DIST_SCALE)
-    out[:, :, slots, 2] = sn[:, rows, ents] * m
-    out[:, :, slots, 3] = cs[:, rows, ents] * m
-    out[:, :, E, 0] = 1.0
-    out[:, :, E, 1] = o_d / DIST_SCALE
-    out[:, :, E, 2] = hx * ty - hy * tx
-    out[:, :, E, 3] = hx * tx + hy * ty
-    return out.reshape(B, P, obs_dim(P, E))
+    out = np.empty((E + P, ENTITY_FEATURES, B, P), dtype=np.float32)
+    blocks = np.r_[0:E, E + 1 : E + P]
+    out[blocks, 0] = mask
+    out[blocks, 1] = d * (mask / DIST_SCALE)
+    out[blocks, 2] = (hx * dy - hy * dx) * inv * mask
+    out[blocks, 3] = (hx * dx + hy * dy) * inv * mask
+    out[E, 0] = 1.0
+    out[E, 1] = o_d / DIST_SCALE
+    out[E, 2] = hx * ty - hy * tx
+    out[E, 3] = hx * tx + hy * ty
+    return out.transpose(2, 3, 0, 1).reshape(B, P, obs_dim(P, E))
