@@ -103,14 +103,16 @@ class Poses:
 
 
 @cache
-def _entities(num_p: int, num_e: int) -> np.ndarray:
+def _entities(num_p: int, num_e: int) -> tuple[np.ndarray, np.ndarray]:
     """(S, P) the entity (index into the N drones) each pursuer sees in each of its S = num_e + num_p - 1
-    evader and teammate blocks, in block order (the obstacle block sits between; read-only, shared)."""
+    evader and teammate blocks, and (S,) the observation blocks they fill (the obstacle block sits
+    between; read-only, shared)."""
     others = np.array([[j for j in range(num_p) if j != i] for i in range(num_p)], dtype=np.intp)
     ev = np.arange(num_p, num_p + num_e)[None].repeat(num_p, 0)
     ents = np.ascontiguousarray(np.concatenate([ev, others.reshape(num_p, num_p - 1)], 1).T)
-    ents.flags.writeable = False
-    return ents
+    blocks = np.r_[0:num_e, num_e + 1 : num_e + num_p]
+    ents.flags.writeable = blocks.flags.writeable = False
+    return ents, blocks
 
 
 def observe(poses: Poses, obstacles: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
@@ -125,7 +127,7 @@ def observe(poses: Poses, obstacles: tuple[np.ndarray, np.ndarray] | None = None
     N = P + E
     pos_p, head_p = poses.pos[:, :P], poses.heading[:, :P]
     hx, hy = np.cos(head_p), np.sin(head_p)
-    ents = _entities(P, E)
+    ents, blocks = _entities(P, E)
     to = ents[:, None, :] + N * np.arange(B)[:, None]  # (S, B, P) flat indices of each block's entity
     flat = poses.pos.reshape(-1, 2)
     dx = flat[:, 0].take(to) - pos_p[..., 0]
@@ -137,7 +139,6 @@ def observe(poses: Poses, obstacles: tuple[np.ndarray, np.ndarray] | None = None
     o_d, o_n = obstacles if obstacles is not None else nearest_obstacle(pos_p, a.geometry)
     tx, ty = -o_n[..., 0], -o_n[..., 1]  # towards the obstacle
     out = np.empty((E + P, ENTITY_FEATURES, B, P), dtype=np.float32)
-    blocks = np.r_[0:E, E + 1 : E + P]
     out[blocks, 0] = mask
     out[blocks, 1] = d * (mask / DIST_SCALE)
     out[blocks, 2] = (hx * dy - hy * dx) * inv * mask

@@ -11,7 +11,7 @@ operations. :class:`RowStream` offers the Generator calls the simulator makes
 from __future__ import annotations
 
 import math
-from functools import cache
+from functools import cache, lru_cache
 
 import numpy as np
 
@@ -41,8 +41,18 @@ def mix(x: np.ndarray) -> np.ndarray:
 
 def fold(keys: np.ndarray, counter: int | np.ndarray) -> np.ndarray:
     """New keys from ``keys`` and a counter (broadcast): distinct counters give unrelated keys."""
+    if isinstance(counter, int):
+        return _fold_mixed(keys, _mixed_counter(counter))
     c = np.atleast_1d(np.asarray(counter, dtype=np.uint64))
     return _fold_mixed(keys, mix((c + np.uint64(1)) * _GOLDEN))
+
+
+@lru_cache(maxsize=4096)
+def _mixed_counter(counter: int) -> np.ndarray:
+    """The mixed (1,) counter of :func:`fold` for an int counter (read-only, shared)."""
+    out = mix((np.atleast_1d(np.asarray(counter, dtype=np.uint64)) + np.uint64(1)) * _GOLDEN)
+    out.flags.writeable = False
+    return out
 
 
 def _fold_mixed(keys: np.ndarray, mixed_counter: np.ndarray) -> np.ndarray:
