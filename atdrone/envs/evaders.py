@@ -169,7 +169,9 @@ def move_evaders(
     """Advance active evaders by ``step`` metres along ``heading``; slide or stop at obstacles."""
     delta = (step * active)[..., None] * np.stack([np.cos(heading), np.sin(heading)], -1)
     cand = pos_e + delta
-    blocked = obstacle_distances(cand, geo).min(-1) < p.body_margin
+    blocked = (
+        obstacle_columns(cand.reshape(-1, 2), geo, normals=False)[0].min(0).reshape(pos_e.shape[:-1]) < p.body_margin
+    )
     if not blocked.any():
         return cand
     # Only the blocked evaders need the nearest obstacle's normal: work out theirs alone.

@@ -62,6 +62,7 @@ class Geometry:
 
 NUM_WALLS = 4  # the first entries of Geometry.names
 _WALL_NORMALS = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
+_WALL_NX, _WALL_NY = np.array(_WALL_NORMALS)[:, :1], np.array(_WALL_NORMALS)[:, 1:]  # (4, 1) each
 
 
 def signed_distances(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
@@ -99,8 +100,8 @@ def obstacle_columns(
     dist[2] = y
     np.subtract(geo.height, y, out=dist[3])
     if nx is not None and ny is not None:
-        nx[:NUM_WALLS] = np.array(_WALL_NORMALS)[:, :1]
-        ny[:NUM_WALLS] = np.array(_WALL_NORMALS)[:, 1:]
+        nx[:NUM_WALLS] = _WALL_NX
+        ny[:NUM_WALLS] = _WALL_NY
     k0, k1 = NUM_WALLS, NUM_WALLS + len(geo.box_half)
     if k1 > k0:
         rx = x - geo.box_center[:, :1]  # (Kb, M)
