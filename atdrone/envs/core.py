@@ -481,16 +481,14 @@ class BatchedPursuit:
         }
         if done.any():
             self.final_state = self.state.copy()
-            self._reset_envs(np.flatnonzero(done))
-            obs[done] = self.observe(self._subset(done))
+            obs[done] = self.observe(self._reset_envs(np.flatnonzero(done)))
         self._obs = obs
         rewards = np.repeat(reward[:, None], P, axis=1).astype(np.float32)
         return obs, rewards, done, info
 
-    def _subset(self, mask: np.ndarray) -> PursuitState:
-        return PursuitState(**{k: v[mask] for k, v in self.state.__dict__.items()})
-
-    def _reset_envs(self, idx: np.ndarray) -> None:
+    def _reset_envs(self, idx: np.ndarray) -> PursuitState:
+        """Start the next episodes in rows ``idx``; returns their fresh state (the rows in ``idx`` order)."""
         fresh = self._fresh_state(self._take(len(idx)))
         for k, v in fresh.__dict__.items():
             getattr(self.state, k)[idx] = v
+        return fresh
