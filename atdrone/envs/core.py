@@ -65,7 +65,7 @@ import numpy as np
 
 from atdrone.config import TaskConfig, load_task
 from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
-from atdrone.envs.geometry import Geometry, obstacle_columns
+from atdrone.envs.geometry import Geometry, nearest_obstacles
 from atdrone.envs.kinematics import advance, turn
 from atdrone.envs.observation import (
     DIST_SCALE as DIST_SCALE,
@@ -257,15 +257,8 @@ def judge(
     i, j = pairs.T
     pair_d = np.sqrt((pos_p[:, i, 0] - pos_p[:, j, 0]) ** 2 + (pos_p[:, i, 1] - pos_p[:, j, 1]) ** 2)
     pair_hit = pair_d < task.collision_distance
-    dist, nx, ny = obstacle_columns(pos_p.reshape(-1, 2), geometry, normals=True)  # (K, B * P)
-    assert nx is not None and ny is not None
-    k, cols = dist.argmin(0), np.arange(dist.shape[1])
-    nearest = k.reshape(pos_p.shape[:2])
-    obstacles = (
-        dist[k, cols].reshape(nearest.shape),
-        np.stack([nx[k, cols], ny[k, cols]], -1).reshape(*nearest.shape, 2),
-    )
-    hit = obstacles[0] < task.safe_radius
+    nearest, o_d, o_n = nearest_obstacles(pos_p, geometry)
+    hit = o_d < task.safe_radius
     in_pair = (pair_hit.astype(np.int64) @ _incidence(np.asarray(pairs, dtype=np.intp).tobytes(), P)) > 0
     return Judgement(
         captured_now=newly,
@@ -275,7 +268,7 @@ def judge(
         hit_pairs=pair_hit,
         hit_obstacle=np.where(hit, nearest, -1),
         collided=hit | in_pair,
-        obstacles=obstacles,
+        obstacles=(o_d, o_n),
     )
 
 

@@ -132,8 +132,18 @@ def obstacle_columns(
 
 def nearest_obstacle(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Distance (...) and outward normal (..., 2) of the nearest obstacle or wall."""
-    dist, normal = signed_distances(points, geo)
-    return pick_nearest(dist, normal)
+    return nearest_obstacles(points, geo)[1:]
+
+
+def nearest_obstacles(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index into ``geo.names`` (...), distance (...) and outward normal (..., 2) of the nearest obstacle or wall."""
+    shape = points.shape[:-1]
+    dist, nx, ny = obstacle_columns(points.reshape(-1, 2), geo, normals=True)
+    assert nx is not None and ny is not None
+    k, cols = dist.argmin(0), np.arange(dist.shape[1])
+    normal = np.empty((len(k), 2))
+    normal[:, 0], normal[:, 1] = nx[k, cols], ny[k, cols]
+    return k.reshape(shape), dist[k, cols].reshape(shape), normal.reshape(*shape, 2)
 
 
 def pick_nearest(dist: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
