@@ -14,7 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from atdrone.envs.geometry import Geometry, obstacle_columns, obstacle_distances, pick_nearest, signed_distances
+from atdrone.envs.geometry import (
+    Geometry,
+    first_argmin,
+    obstacle_columns,
+    obstacle_distances,
+    pick_nearest,
+    signed_distances,
+)
 
 
 @dataclass(frozen=True)
@@ -100,7 +107,8 @@ def escape_directions(
     dmin = d.min(0)
     obs_d, obs_nx, obs_ny = obstacle_columns(flat, geo, normals=True)  # (K, M) each
     assert obs_nx is not None and obs_ny is not None
-    calm = (panic(dmin, p.panic_scale) < p.calm_panic) & (obs_d.min(0) > p.calm_clearance)
+    obs_min = obs_d.min(0)
+    calm = (panic(dmin, p.panic_scale) < p.calm_panic) & (obs_min > p.calm_clearance)
 
     w = (d < perception) / np.maximum(d2, 1e-9)
     fx, fy = last_axis_sum(dx * w), last_axis_sum(dy * w)
@@ -121,11 +129,11 @@ def escape_directions(
     # Intent: away from the pursuers, or through the gap between the two nearest ones.
     ix, iy = fx, fy
     if P >= 2:
-        i1 = d.argmin(0)
+        i1 = first_argmin(d, dmin)
         d_rest = d.copy()
         d_rest[i1, np.arange(d.shape[1])] = np.inf
-        i2 = d_rest.argmin(0)
-        d2nd = _column_pick(d_rest, i2)
+        d2nd = d_rest.min(0)
+        i2 = first_argmin(d_rest, d2nd)
         ax, ay = _column_pick(dx, i1), _column_pick(dy, i1)
         bx, by = _column_pick(dx, i2), _column_pick(dy, i2)
         slip = (d2nd < p.slip_range) & (_norm(ax - bx, ay - by) > 2 * capture_range)
@@ -141,7 +149,7 @@ def escape_directions(
     # Wall following: when the intent runs into the nearest obstacle, run along it
     # (keeping the current sense of travel when the intent is square on) and drift
     # off it gently, instead of letting the repulsion turn the evader back.
-    k = obs_d.argmin(0)
+    k = first_argmin(obs_d, obs_min)
     near_d, nx, ny = _column_pick(obs_d, k), _column_pick(obs_nx, k), _column_pick(obs_ny, k)
     into = ix * nx + iy * ny
     follow = (near_d < p.follow_range) & (into < 0)

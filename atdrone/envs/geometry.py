@@ -130,6 +130,17 @@ def obstacle_columns(
     return dist, nx, ny
 
 
+def first_argmin(values: np.ndarray, smallest: np.ndarray | None = None) -> np.ndarray:
+    """``values.argmin(0)`` of (K, M) NaN-free ``values`` (the first smallest of each column), given or
+    taking ``smallest = values.min(0)``: K - 1 whole-row passes, faster than numpy's argmin across rows."""
+    if smallest is None:
+        smallest = values.min(0)
+    index = np.full(values.shape[1], values.shape[0] - 1, dtype=np.intp)
+    for k in range(values.shape[0] - 2, -1, -1):
+        index[values[k] == smallest] = k
+    return index
+
+
 def nearest_obstacle(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np.ndarray]:
     """Distance (...) and outward normal (..., 2) of the nearest obstacle or wall."""
     return nearest_obstacles(points, geo)[1:]
@@ -140,7 +151,7 @@ def nearest_obstacles(points: np.ndarray, geo: Geometry) -> tuple[np.ndarray, np
     shape = points.shape[:-1]
     dist, nx, ny = obstacle_columns(points.reshape(-1, 2), geo, normals=True)
     assert nx is not None and ny is not None
-    k, cols = dist.argmin(0), np.arange(dist.shape[1])
+    k, cols = first_argmin(dist), np.arange(dist.shape[1])
     normal = np.empty((len(k), 2))
     normal[:, 0], normal[:, 1] = nx[k, cols], ny[k, cols]
     return k.reshape(shape), dist[k, cols].reshape(shape), normal.reshape(*shape, 2)
