@@ -56,10 +56,12 @@ def last_axis_sum(terms: np.ndarray) -> np.ndarray:
     """``terms.sum(0)`` rounded as numpy sums a contiguous short last axis (``np.moveaxis(terms, 0, -1).sum(-1)``).
 
     numpy adds a row from 0.0 one term after another below 8 terms and in 8 running
-    partial sums from 8 on; adding whole (n, M) rows the same way keeps those bits with
-    long inner loops.
+    partial sums from 8 on (up to its pairwise block of 128 terms; the simulator sums a few);
+    adding whole (n, M) rows the same way keeps those bits with long inner loops.
     """
     n = terms.shape[0]
+    if n > 128:
+        raise ValueError(f"last_axis_sum follows numpy's order up to 128 terms, got {n}")
     if n < 8:
         acc = -0.0 + terms[0]
         for i in range(1, n):
