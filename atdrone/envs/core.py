@@ -65,7 +65,7 @@ import numpy as np
 
 from atdrone.config import TaskConfig, load_task
 from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
-from atdrone.envs.geometry import Geometry, nearest_obstacles
+from atdrone.envs.geometry import Geometry, nearest_obstacles, offsets
 from atdrone.envs.kinematics import advance, turn
 from atdrone.envs.observation import (
     DIST_SCALE as DIST_SCALE,
@@ -159,10 +159,9 @@ def _pairs(num_p: int) -> np.ndarray:
 
 
 @cache
-def _incidence(pairs: bytes, num_p: int) -> np.ndarray:
-    """(pairs, P) int64: 1 where a pursuer is one of a pair (``pairs`` as the bytes of an int (pairs, 2) array)."""
-    pair_array = np.frombuffer(pairs, dtype=np.intp).reshape(-1, 2)
-    member = (pair_array[:, :, None] == np.arange(num_p)).any(1).astype(np.int64)
+def _incidence(num_p: int) -> np.ndarray:
+    """(pairs, P) int64: 1 where a pursuer is one of a pair of :func:`_pairs` (read-only, shared)."""
+    member = (_pairs(num_p)[:, :, None] == np.arange(num_p)).any(1).astype(np.int64)
     member.flags.writeable = False
     return member
 
@@ -172,10 +171,8 @@ def evader_distances(pos: np.ndarray, num_p: int) -> np.ndarray:
 
     Worked out as (P, B * E) arrays, the evaders innermost (a short trailing pursuer axis is slow in numpy).
     """
-    B, E = pos.shape[0], pos.shape[1] - num_p
-    dx = pos[:, num_p:, 0].reshape(-1) - np.repeat(pos[:, :num_p, 0].T, E, axis=1)
-    dy = pos[:, num_p:, 1].reshape(-1) - np.repeat(pos[:, :num_p, 1].T, E, axis=1)
-    return np.sqrt(dx * dx + dy * dy).min(0).reshape(B, E)
+    dx, dy = offsets(pos[:, num_p:], pos[:, :num_p])
+    return np.sqrt(dx * dx + dy * dy).min(0).reshape(pos.shape[0], -1)
 
 
 @dataclass(frozen=True)
@@ -244,13 +241,11 @@ class Judgement:
     obstacles: tuple[np.ndarray, np.ndarray]
 
 
-def judge(
-    pos: np.ndarray, captured: np.ndarray, cfg: TaskConfig, geometry: Geometry, pairs: np.ndarray | None = None
-) -> Judgement:
-    """Which evaders are caught and which pursuers collide at positions ``pos`` (B, N, 2), pursuers first."""
+def judge(pos: np.ndarray, captured: np.ndarray, cfg: TaskConfig, geometry: Geometry) -> Judgement:
+    """Which evaders are caught and which pursuers collide at positions ``pos`` (B, N, 2), pursuers first
+    (pairs in :attr:`BatchedPursuit.pairs` order)."""
     P, task = cfg.players.num_p, cfg.task
-    if pairs is None:
-        pairs = _pairs(P)
+    pairs = _pairs(P)
     dist_pe = evader_distances(pos, P)
     newly = ~captured & (dist_pe < task.capture_range)
     pos_p = pos[:, :P]
@@ -259,7 +254,7 @@ def judge(
     pair_hit = pair_d < task.collision_distance
     nearest, o_d, o_n = nearest_obstacles(pos_p, geometry)
     hit = o_d < task.safe_radius
-    in_pair = (pair_hit.astype(np.int64) @ _incidence(np.asarray(pairs, dtype=np.intp).tobytes(), P)) > 0
+    in_pair = (pair_hit.astype(np.int64) @ _incidence(P)) > 0
     return Judgement(
         captured_now=newly,
         captured=captured | newly,
@@ -417,7 +412,7 @@ class BatchedPursuit:
         wander_heading, wander_left = ev.wander_heading, ev.wander_left
 
         # Capture and collision.
-        judged = judge(pos, s.captured, self.cfg, self.geometry, self.pairs)
+        judged = judge(pos, s.captured, self.cfg, self.geometry)
         newly, captured, dist_pe = judged.captured_now, judged.captured, judged.evader_distance
         pair_d, pair_hit, hit_obstacle, collided = (
             judged.pair_distance,

@@ -19,6 +19,7 @@ from atdrone.envs.geometry import (
     first_argmin,
     obstacle_columns,
     obstacle_distances,
+    offsets,
     pick_nearest,
     signed_distances,
 )
@@ -101,9 +102,7 @@ def escape_directions(
     """
     B, E, P = pos_e.shape[0], pos_e.shape[1], pos_p.shape[1]
     flat = pos_e.reshape(-1, 2)
-    ex, ey = flat[:, 0], flat[:, 1]  # (M,), M = B * E
-    dx = ex - np.repeat(pos_p[:, :, 0].T, E, axis=1)  # (P, M)
-    dy = ey - np.repeat(pos_p[:, :, 1].T, E, axis=1)
+    dx, dy = offsets(pos_e, pos_p)  # (P, M)
     d2 = dx * dx + dy * dy
     d = np.sqrt(d2)
     dmin = d.min(0)
@@ -118,8 +117,7 @@ def escape_directions(
     fx, fy = fx / f, fy / f
 
     # Obstacles, walls and the other active evaders (as discs) push the evader away.
-    rx = ex - np.repeat(pos_e[:, :, 0].T, E, axis=1)  # (E, M): evader m from evader k of its env
-    ry = ey - np.repeat(pos_e[:, :, 1].T, E, axis=1)
+    rx, ry = offsets(pos_e, pos_e)  # (E, M): evader m from evader k of its env
     rl = np.maximum(_norm(rx, ry), 1e-12)
     others = np.repeat(active.T, E, axis=1) & (np.arange(E)[:, None] != np.arange(B * E) % E)
     ee_push = np.maximum(0.0, 1.0 / np.maximum(rl - p.evader_radius, 1e-2) - 1.0 / p.repulsion_range)

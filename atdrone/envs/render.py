@@ -254,7 +254,7 @@ class FrameRenderer:
         from matplotlib.patches import Circle
 
         core, ax = self.core, self.ax
-        found = judge(pos[None], captured[None], core.cfg, core.geometry, core.pairs)
+        found = judge(pos[None], captured[None], core.cfg, core.geometry)
         artists: list[Any] = []
         for i, j in core.pairs[found.hit_pairs[0]]:
             (line,) = ax.plot(*pos[[i, j]].T, color=COLLISION_COLOR, linewidth=2.5, zorder=5.7)

@@ -43,14 +43,18 @@ def fold(keys: np.ndarray, counter: int | np.ndarray) -> np.ndarray:
     """New keys from ``keys`` and a counter (broadcast): distinct counters give unrelated keys."""
     if isinstance(counter, int):
         return _fold_mixed(keys, _mixed_counter(counter))
-    c = np.atleast_1d(np.asarray(counter, dtype=np.uint64))
-    return _fold_mixed(keys, mix((c + np.uint64(1)) * _GOLDEN))
+    return _fold_mixed(keys, _mixed(np.atleast_1d(np.asarray(counter, dtype=np.uint64))))
+
+
+def _mixed(counters: np.ndarray) -> np.ndarray:
+    """:func:`fold`'s mixed form of uint64 ``counters``."""
+    return mix((counters + np.uint64(1)) * _GOLDEN)
 
 
 @lru_cache(maxsize=4096)
 def _mixed_counter(counter: int) -> np.ndarray:
     """The mixed (1,) counter of :func:`fold` for an int counter (read-only, shared)."""
-    out = mix((np.atleast_1d(np.asarray(counter, dtype=np.uint64)) + np.uint64(1)) * _GOLDEN)
+    out = _mixed(np.array([counter], dtype=np.uint64))
     out.flags.writeable = False
     return out
 
@@ -63,7 +67,7 @@ def _fold_mixed(keys: np.ndarray, mixed_counter: np.ndarray) -> np.ndarray:
 @cache
 def _mixed_range(width: int) -> np.ndarray:
     """The mixed counters 0 .. width - 1 of :func:`fold` (read-only, shared)."""
-    out = mix((np.arange(width, dtype=np.uint64) + np.uint64(1)) * _GOLDEN)
+    out = _mixed(np.arange(width, dtype=np.uint64))
     out.flags.writeable = False
     return out
 
