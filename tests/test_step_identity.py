@@ -92,3 +92,27 @@ def test_step_reproduces_the_recorded_trajectory_bit_for_bit(case: str) -> None:
 
 def test_the_cases_cover_the_four_tasks() -> None:
     assert set(TASK_NAMES) <= set(DIGESTS)
+
+
+@pytest.mark.parametrize("n", [1, 2, 4, 7, 8, 9, 15, 16, 19, 40])
+def test_last_axis_sum_rounds_as_numpy_sums_a_short_last_axis(n: int) -> None:
+    """Summing (n, M) rows gives the bits of numpy's sum over a contiguous (M, n) last axis: terms of mixed
+    magnitude (where the order of additions shows) and rows of signed zeros (numpy starts from +0.0)."""
+    from atdrone.envs.evaders import last_axis_sum
+
+    rng = np.random.default_rng(n)
+    terms = rng.standard_normal((n, 4096)) * 10.0 ** rng.integers(-8, 8, (n, 4096))
+    terms[:, :8] = -0.0
+    want = np.ascontiguousarray(np.moveaxis(terms, 0, -1)).sum(-1)
+    got = last_axis_sum(terms)
+    assert got.tobytes() == want.tobytes()
+    if n >= 8:  # rows added one after another (terms.sum(0)) round otherwise: the order is what is pinned
+        assert terms.sum(0).tobytes() != want.tobytes()
+
+
+def test_first_argmin_is_numpys_argmin_over_rows_ties_to_the_first() -> None:
+    from atdrone.envs.geometry import first_argmin
+
+    values = np.random.default_rng(0).integers(0, 3, (5, 1000)).astype(float)  # many ties
+    np.testing.assert_array_equal(first_argmin(values), values.argmin(0))
+    np.testing.assert_array_equal(first_argmin(values, values.min(0)), values.argmin(0))
