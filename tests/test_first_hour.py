@@ -322,7 +322,9 @@ def test_ctrl_c_in_train_says_what_was_kept_and_how_to_resume(tmp_path: Path) ->
     # after a checkpoint: what was kept, and the command that resumes
     config = _train_config(tmp_path)
     done = _interrupt_when(tmp_path, config, run_dir / "learner_state.safetensors")
-    assert done.returncode == 130, done.stderr
+    # 130, or (seen once in a loaded suite, after this same last line) the process ended by the SIGINT itself,
+    # which CPython does when it deems the interrupt unhandled: a shell reports both as 130
+    assert done.returncode in (130, -signal.SIGINT), done.stderr
     last = done.stderr.strip().splitlines()[-1]
     assert last.startswith("atdrone train: interrupted; kept the checkpoint at ") and "env steps (last.pt" in last
     assert last.endswith(f"in {run_dir}; resume with: atdrone train {config} --resume")

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from atdrone.config import ConfigError, TaskConfig, load_task
 from atdrone.envs.core import CAPTURED, DONE_REASONS, BatchedPursuit
@@ -29,6 +29,9 @@ from atdrone.envs.geometry import NUM_WALLS
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import Zoo, load_zoo
 from atdrone.teams.match import Match, PartnerSampler
+
+if TYPE_CHECKING:  # imported where a frame is made: a learner or rollout actor that never evaluates skips it
+    import pandas as pd
 
 METRICS = ("SUC", "COL", "AST", "REW")
 MAX_ENVS = 1024
@@ -204,6 +207,8 @@ def run_episodes(
             on_progress(len(idx))
         if core.next_episode > episodes:  # the rows that ended started episodes past the last: they leave
             match.keep(np.flatnonzero(core.state.episode < episodes))
+    import pandas as pd
+
     out = pd.DataFrame(rec)
     out.insert(0, "episode", np.arange(episodes))
     out["partners"] = teams
@@ -241,6 +246,8 @@ def evaluate(
     on_progress: Callable[[int], None] | None = None,
 ) -> Evaluation:
     """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated."""
+    import pandas as pd
+
     cfg = load_task(task)
     zoo = load_zoo(zoo) if isinstance(zoo, str) else zoo
     partners = zoo.policies()
