@@ -391,6 +391,38 @@ def test_a_transit_after_captures_at_the_top_goes_around_the_bar_ends() -> None:
     np.testing.assert_allclose(pts[-1], end, atol=1e-9)
 
 
+def test_a_transit_from_above_the_bars_middle_to_below_it_bends_well_past_an_end() -> None:
+    """A flight ended with both evader drones caught at the top and cf3 at (1.50, 3.28), above the bar's middle;
+    its spawn below the middle. Bent at the point 0.25 m past an end (the only end point there was), either leg
+    passes a corner of that end within 0.15 m: every spawn draw was refused and the flight ended early. From a
+    point 0.55 m past the end both legs clear the corners."""
+    from atdrone.deploy.shield import obstacle_distance
+    from atdrone.deploy.transit import plan_transit
+
+    fence = geofence(ARENA, CFG.margin)
+    one = plan_transit(
+        np.array([[1.50, 3.28, 0.5]]),
+        np.array([[2.00, 0.45, 0.5]]),
+        0.3,
+        0.125,
+        0.375,
+        bounds=fence,
+        obstacles=CORNER_BAR,
+    )
+    np.testing.assert_allclose(one.via[0, :2], [1.75 + 0.75 + 0.25 + 0.3, 2.5])  # the nearest end, 0.3 m further
+    assert obstacle_distance(_sampled(one)[:, 0, :2], CORNER_BAR).min() >= 0.15 - 1e-6
+    # the whole team as that flight left it, to one spawn draw
+    start = np.array([[2.08, 4.38], [1.94, 3.57], [1.50, 3.28], [3.09, 4.22], [2.88, 4.69], [3.35, 4.75]])
+    end = np.array([[0.62, 0.55], [1.24, 0.71], [2.00, 0.45], [2.48, 0.62], [1.30, 4.50], [2.35, 4.62]])
+    start, end = (np.c_[p, np.full(6, 0.5)] for p in (start, end))
+    pts = _sampled(plan_transit(start, end, 0.3, 0.125, 0.375, bounds=fence, obstacles=CORNER_BAR))
+    assert min(obstacle_distance(pts[:, k, :2], CORNER_BAR).min() for k in range(6)) >= 0.15 - 1e-6
+    for i in range(6):
+        for j in range(i + 1, 6):
+            assert ellipsoid_distance(pts[:, j] - pts[:, i], 0.125, 0.375).min() >= 1.3 - 1e-6
+    np.testing.assert_allclose(pts[-1], end, atol=1e-9)
+
+
 def test_a_drone_held_nearer_the_bar_than_the_clearance_may_leave_it() -> None:
     """A pursuer the shield held at the bar ends a flight 0.148 m from it (noise on the 0.15 m clearance): every
     route from there began inside the clearance and the planner refused them all. Now it only must not come

@@ -87,8 +87,9 @@ def _detours(
     clearance: float = 0.15,
 ) -> list[np.ndarray]:
     """Waypoints: 0.4, 0.8 and 1.2 m either side of the line's middle, then 0.5 m from the start in eight
-    directions (a first step out of a crowd), then past each end and side of every obstacle (``clearance``
-    + 0.1 m out: the way around a bar whose middle the line crosses), nearest first, inside ``bounds``."""
+    directions (a first step out of a crowd), then past each end (``clearance`` + 0.1, 0.4 and 0.7 m out),
+    side and corner of every obstacle (``clearance`` + 0.1 m out): the ways around a bar whose middle the
+    line crosses, nearest first, inside ``bounds``."""
     mid = (start + end) / 2
     d = end[:2] - start[:2]
     n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-9) if np.hypot(*d) > 1e-9 else np.array([1.0, 0.0])
@@ -96,8 +97,22 @@ def _detours(
     points += [start[:2] + 0.5 * np.array([np.cos(a), np.sin(a)]) for a in np.arange(8) * np.pi / 4]
     if obstacles is not None:
         beyond = clearance + 0.1
-        around = [(cx + sx * (hx + beyond), cy) for cx, cy, hx, _ in obstacles.boxes for sx in (-1, 1)]
+        # past each end, and further out: a line from above a bar's middle to below it, bent at one point,
+        # clears both corners of an end only from a point well past that end
+        around = [
+            (cx + sx * (hx + beyond + out), cy)
+            for cx, cy, hx, _ in obstacles.boxes
+            for sx in (-1, 1)
+            for out in (0.0, 0.3, 0.6)
+        ]
         around += [(cx, cy + sy * (hy + beyond)) for cx, cy, _, hy in obstacles.boxes for sy in (-1, 1)]
+        # and past each corner: a line from beside a bar's middle to the point past its end cuts the corner
+        around += [
+            (cx + sx * (hx + beyond), cy + sy * (hy + beyond))
+            for cx, cy, hx, hy in obstacles.boxes
+            for sx in (-1, 1)
+            for sy in (-1, 1)
+        ]
         around += [
             (cx + (r + beyond) * np.cos(a), cy + (r + beyond) * np.sin(a))
             for cx, cy, r in obstacles.discs
