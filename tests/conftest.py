@@ -23,7 +23,6 @@ _RAY_MODULES = (
     "test_hardening",
     "test_jobs",
     "test_learner",
-    "test_moved_run",
     "test_registry",
     "test_service",
     "test_teammate_service",

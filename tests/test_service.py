@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import itertools
 import json
+import shutil
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import mlflow
@@ -22,6 +24,7 @@ from atdrone.policies.zoo import load_zoo
 from atdrone.population import ALGORITHMS
 from atdrone.population.base import Algorithm, GenerationReport, record
 from atdrone.registry import Registry
+from atdrone.resolve import resolve
 from atdrone.service import driver
 from atdrone.service.driver import STATE_FILE, run_experiment, select_best
 from atdrone.service.experiment import load_experiment
@@ -284,13 +287,23 @@ def test_the_coordinator_skips_a_zoo_evaluation_whose_checkpoint_is_missing(loca
         ray.kill(coordinator)
 
 
-def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path, mlflow_store):
+def test_resume_continues_from_the_last_completed_generation_wherever_the_run_directory_now_is(
+    local_ray, tmp_path, mlflow_store
+):
+    """A stopped run resumes from its last completed generation; moved to another folder first, it resumes
+    there, and nothing reads or writes the old tree."""
     uri = mlflow_store(tmp_path / "mlflow.db")
+    first_home, home = tmp_path / "first", tmp_path / "second"
     # the "w/o g" ablation: HOLA's generations with partners drawn uniformly from Pi minus N_t
-    cfg = _cfg(tmp_path, "resume_t", algorithm="hola_no_g", generations=3, updates_per_generation=3, hola_no_g=HOLA)
+    kw = {"algorithm": "hola_no_g", "generations": 3, "updates_per_generation": 3, "hola_no_g": HOLA}
+    cfg = _cfg(first_home, "resume_t", **kw)
     first = run_experiment(cfg, tracking_uri=uri, progress=False, stop_after=2)
     assert first["stopped"]
-    run_dir = tmp_path / "resume_t"
+    home.mkdir()
+    shutil.move(first_home / "resume_t", home / "resume_t")
+    first_home.rmdir()
+    cfg = _cfg(home, "resume_t", **kw)
+    run_dir = (home / "resume_t").resolve()
     saved = json.loads((run_dir / STATE_FILE).read_text())
     reg = Registry(run_dir / "registry.db")
     before = reg.members(run="resume_t").set_index("id")
@@ -302,7 +315,11 @@ def test_resume_continues_from_the_last_completed_generation(local_ray, tmp_path
         run_experiment(cfg, tracking_uri=uri, progress=False)
     second = run_experiment(cfg, tracking_uri=uri, resume=True, progress=False)
     assert [r.generation for r in second["reports"]] == [2]
+    assert not first_home.exists()  # nothing was written to the old tree
     after = reg.members(run="resume_t").set_index("id")
+    for member, checkpoint in after["checkpoint"].items():  # every checkpoint where the run now is, found by id
+        assert Path(checkpoint).parent == run_dir / "members"
+        assert resolve(member, runs_dir=home).checkpoint == Path(checkpoint)
     # what was saved is untouched: same members, same checkpoints byte for byte
     assert len(before) == 4 and list(after.index[:4]) == list(before.index)
     for member in before.index:
