@@ -24,7 +24,6 @@ from atdrone.learn.trainer import STATE_FILE as LEARNER_STATE
 from atdrone.learn.trainer import Trainer, load_train_config, run_training
 from atdrone.models.checkpoint import MAGIC, load_checkpoint, save_checkpoint
 from atdrone.models.networks import ActorCritic, NetConfig
-from atdrone.registry import Registry
 from atdrone.rundir import RunError, config_changes
 from atdrone.service.driver import STATE_FILE, check_schedulable, run_experiment
 from atdrone.service.experiment import load_experiment
@@ -123,24 +122,6 @@ def test_the_local_trainer_refuses_to_resume_a_different_experiment(tmp_path, ml
 
 def _service(tmp_path: Path, name: str, **kw) -> dict:
     return {**TINY_SERVICE, "name": name, "out_dir": str(tmp_path), **kw}
-
-
-def test_the_service_refuses_to_resume_a_different_experiment(local_ray, tmp_path, mlflow_store):
-    uri = mlflow_store(tmp_path / "mlflow.db")
-    first = run_experiment(load_experiment(_service(tmp_path, "mix")), tracking_uri=uri, progress=False, stop_after=1)
-    # every member new in generation 0 (Pi_0's two snapshots, not only N_0) has its zoo SUC for the curves
-    members = Registry(tmp_path / "mix" / "registry.db").members(run="mix")
-    assert len(members) == 2 and all("zoo1/SUC" in m for m in members["metrics"])
-    parent = mlflow.MlflowClient(tracking_uri=uri).get_run(first["mlflow_run_id"]).data.metrics
-    assert parent["gen/zoo1_SUC_best_4ep"] == max(m["zoo1/SUC"] for m in members["metrics"])  # eval_episodes 4
-    assert parent["gen/population_size"] == 2
-    saved = (tmp_path / "mix" / "config.json").read_bytes()
-    other = _service(tmp_path, "mix", algorithm="sp", task="4p2e3o", sp={})
-    other.pop("hola")
-    with pytest.raises(RunError, match=r"algorithm: 'hola' -> 'sp'.*task: '4p2e1o' -> '4p2e3o'"):
-        run_experiment(load_experiment(other), tracking_uri=uri, resume=True, progress=False)
-    assert (tmp_path / "mix" / "config.json").read_bytes() == saved
-    assert set(Registry(tmp_path / "mix" / "registry.db").members()["algorithm"]) == {"hola"}
 
 
 def test_a_damaged_service_state_is_a_clear_error(local_ray, tmp_path):

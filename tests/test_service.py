@@ -25,6 +25,7 @@ from atdrone.population import ALGORITHMS
 from atdrone.population.base import Algorithm, GenerationReport, record
 from atdrone.registry import Registry
 from atdrone.resolve import resolve
+from atdrone.rundir import RunError
 from atdrone.service import driver
 from atdrone.service.driver import STATE_FILE, run_experiment, select_best
 from atdrone.service.experiment import load_experiment
@@ -311,8 +312,24 @@ def test_resume_continues_from_the_last_completed_generation_wherever_the_run_di
     assert saved["coordinator"]["algorithm"]["population"] == list(before.index)
     assert saved["coordinator"]["algorithm"]["learners"] == [before.index[-1]]
     assert saved["coordinator"]["budget"] == first["reports"][-1].budget
+    # generation 0's every new member (Pi_0's three snapshots, not only N_0) has its zoo SUC for the curves
+    gen0 = before[before["generation"] == 0]
+    assert len(gen0) == 3 and all("zoo1/SUC" in m for m in gen0["metrics"])
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    history = {
+        k: {m.step: m.value for m in client.get_metric_history(first["mlflow_run_id"], k)}
+        for k in ("gen/zoo1_SUC_best_4ep", "gen/population_size")
+    }
+    assert history["gen/zoo1_SUC_best_4ep"][0] == max(m["zoo1/SUC"] for m in gen0["metrics"])  # 4 episodes each
+    assert history["gen/population_size"] == {0: 3, 1: 4}
+    # only as itself: not as a new run of that name, nor as another experiment
     with pytest.raises(FileExistsError):
         run_experiment(cfg, tracking_uri=uri, progress=False)
+    config = (run_dir / "config.json").read_bytes()
+    other = {**TINY, "name": "resume_t", "out_dir": str(home), "algorithm": "sp", "task": "4p2e3o", "sp": {}}
+    with pytest.raises(RunError, match=r"algorithm: 'hola_no_g' -> 'sp'.*task: '4p2e1o' -> '4p2e3o'"):
+        run_experiment(load_experiment(other), tracking_uri=uri, resume=True, progress=False)
+    assert (run_dir / "config.json").read_bytes() == config
     second = run_experiment(cfg, tracking_uri=uri, resume=True, progress=False)
     assert [r.generation for r in second["reports"]] == [2]
     assert not first_home.exists()  # nothing was written to the old tree
