@@ -2,9 +2,10 @@
 
 Trains with the default PPO config in one process and evaluates the deterministic policy
 on --episodes self-play episodes every --eval-every updates (evaluation time counts in
-the wall time). Stops at the target or the time limit. Prints JSON (the curve, the time to
-target) and writes the learning curve PNG and the final checkpoint to --out.
-Usage: python benchmarks/learning_sp.py [--minutes 20] [--target 70] [--out reports/learning_sp]
+the wall time). Stops at the target or the time limit; with --env-steps, at that budget
+instead (the SUC there, whatever the target). Prints JSON (the curve, the time to target,
+the last evaluation's SUC) and writes the learning curve PNG and the final checkpoint to --out.
+Usage: python benchmarks/learning_sp.py [--minutes 20] [--target 70] [--env-steps N] [--out reports/learning_sp]
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--eval-every", type=int, default=40, help="updates between evaluations")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--env-steps", type=int, default=0, help="train to this budget, not to the target (0: off)")
     parser.add_argument("--out", default="reports/learning_sp")
     parser.add_argument("--ppo", default="{}", help="PPO overrides as JSON, e.g. '{\"lr\": 1e-4}'")
     parser.add_argument("--update-threads", type=int, default=2, help="torch threads of the update")
@@ -54,10 +56,10 @@ def main() -> None:
             ev = trainer.evaluate(args.episodes)
             row.update({f"eval/{k}": v for k, v in ev.items()}, wall_s=time.perf_counter() - start)
             print(json.dumps({"wall_s": round(row["wall_s"]), "env_steps": trainer.env_steps, **ev}), flush=True)
-            if ev["SUC"] >= args.target:
+            if ev["SUC"] >= args.target and reached is None:
                 reached = row["wall_s"]
         rows.append(row)
-        if reached is not None:
+        if (trainer.env_steps >= args.env_steps) if args.env_steps else reached is not None:
             break
     history = pd.DataFrame(rows)
     trainer.history = rows
@@ -72,6 +74,7 @@ def main() -> None:
         "reached_target": reached is not None,
         "time_to_target_s": None if reached is None else round(reached, 1),
         "best_SUC": float(evals["eval/SUC"].max()) if len(evals) else None,
+        "final_SUC": float(evals["eval/SUC"].iloc[-1]) if len(evals) else None,
         "env_steps": trainer.env_steps,
         "curve": [
             {"wall_s": round(r["wall_s"]), "env_steps": int(r["env_steps"]), "SUC": r["eval/SUC"], "COL": r["eval/COL"]}
