@@ -59,7 +59,8 @@ def main() -> None:
             if ev["SUC"] >= args.target and reached is None:
                 reached = row["wall_s"]
         rows.append(row)
-        if (trainer.env_steps >= args.env_steps) if args.env_steps else reached is not None:
+        done = trainer.env_steps >= args.env_steps if args.env_steps else reached is not None
+        if done:
             break
     history = pd.DataFrame(rows)
     trainer.history = rows
