@@ -27,7 +27,7 @@ from atdrone.config import TaskConfig
 from atdrone.envs.core import DONE_REASONS, TIMEOUT, BatchedPursuit
 from atdrone.learn.ppo import PPOConfig, gae
 from atdrone.models import build_model
-from atdrone.models.networks import global_state, squash_log_prob
+from atdrone.models.networks import global_state, squash_log_prob, training_kernels
 from atdrone.policies.base import Policy
 from atdrone.policies.neural import NeuralPolicy
 from atdrone.teams.match import Match, PartnerSampler
@@ -233,9 +233,11 @@ class RolloutWorker:
                 }
             )
 
+    @training_kernels()
     @torch.no_grad()
     def collect(self, steps: int) -> Fragment:
-        """Step every environment ``steps`` times with the current weights."""
+        """Step every environment ``steps`` times with the current weights (numpy's tanh: only training
+        reads a fragment)."""
         B, k, D = self.obs.shape
         u_num = self.match.num_unctrl
         ppo = self.ppo

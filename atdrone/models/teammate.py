@@ -34,7 +34,7 @@ from torch import nn
 
 from atdrone.envs.core import ENTITY_FEATURES
 from atdrone.models.history import DroneMemory, ObsHistory
-from atdrone.models.networks import NET_LIMITS, EntityTrunk, GlobalEncoder, NetConfig, _layer
+from atdrone.models.networks import NET_LIMITS, EntityTrunk, GlobalEncoder, NetConfig, Tanh, _layer
 
 if TYPE_CHECKING:
     from atdrone.models.architectures import PolicyModel
@@ -101,9 +101,9 @@ class TeammateEncoder(nn.Module):
         super().__init__()
         frames, F = cfg.history + 1, ENTITY_FEATURES
         self.cfg = cfg
-        self.evaders = nn.Sequential(_layer(frames * cfg.num_e * F, cfg.embed_dim), nn.Tanh())
-        self.own = nn.Sequential(_layer(frames * F + cfg.history, cfg.embed_dim), nn.Tanh())
-        self.mates = nn.Sequential(_layer(frames * (cfg.num_p - 1) * F, cfg.embed_dim), nn.Tanh())
+        self.evaders = nn.Sequential(_layer(frames * cfg.num_e * F, cfg.embed_dim), Tanh())
+        self.own = nn.Sequential(_layer(frames * F + cfg.history, cfg.embed_dim), Tanh())
+        self.mates = nn.Sequential(_layer(frames * (cfg.num_p - 1) * F, cfg.embed_dim), Tanh())
         self.stream_logits = nn.Parameter(torch.zeros(3))
 
     def weights(self) -> torch.Tensor:
@@ -147,7 +147,7 @@ class TeammateActorCritic(nn.Module):
         self.decoder = (
             nn.Sequential(
                 _layer(E, self.cfg.decoder_hidden),
-                nn.Tanh(),
+                Tanh(),
                 _layer(self.cfg.decoder_hidden, 2 * (self.cfg.num_p - 1), gain=0.01),
             )
             if self.cfg.decoder
