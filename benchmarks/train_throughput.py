@@ -6,7 +6,7 @@ pursuer-steps/s on a 2-core machine. With ``--reference DIR`` (a checkout of ano
 commit, e.g. ``git worktree add /tmp/before <commit>``) it measures both trees in
 alternating subprocess rounds, each with its own code on PYTHONPATH, and prints the ratio
 this tree / reference (issue 12: no slower than before the redesign).
-Usage: python benchmarks/train_throughput.py [--task 4p2e1o] [--updates 8] [--reference DIR --rounds 3]
+Usage: python benchmarks/train_throughput.py [--task 4p2e1o] [--updates 8] [--epochs N] [--reference DIR --rounds 3]
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,8 +39,11 @@ def measure(task: str, updates: int, mode: str = "self_play", **ppo: object) -> 
         wall = time.perf_counter() - start
     samples = updates * trainer.ppo.num_envs * trainer.ppo.rollout_steps * trainer.worker.match.num_ctrl
     split = {k: float(np.sum([r[f"perf/{k}_s"] for r in rows])) for k in ("simulation", "inference", "update")}
+    import atdrone
+
     return {
         "mode": mode,
+        "atdrone": str(Path(atdrone.__file__).resolve().parent),
         "pursuer_steps_per_s": round(samples / wall, 1),
         "env_steps_per_s": round(samples / trainer.worker.match.num_ctrl / wall, 1),
         "wall_s": round(wall, 2),
@@ -54,18 +58,23 @@ def measure(task: str, updates: int, mode: str = "self_play", **ppo: object) -> 
     }
 
 
-def _subprocess_rate(tree: Path, task: str, updates: int) -> float:
-    """Pursuer-steps/s of the tree's own benchmark script, run with the tree's code first on the path."""
+def _subprocess_rate(tree: Path, task: str, updates: int, epochs: int | None) -> dict[str, Any]:
+    """One measurement by this script with the tree's atdrone first on the path: the same benchmark code
+    times either tree's library (a reference checkout's own script may lack this one's options)."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
+    extra = ["--epochs", str(epochs)] if epochs is not None else []
     out = subprocess.run(
-        [sys.executable, str(tree / "benchmarks" / "train_throughput.py"), "--task", task, "--updates", str(updates)],
+        [sys.executable, str(Path(__file__).resolve()), "--task", task, "--updates", str(updates), *extra],
         cwd=tree,
         env=env,
         capture_output=True,
         text=True,
         check=True,
     )
-    return float(json.loads(out.stdout)["self_play"]["pursuer_steps_per_s"])
+    result: dict[str, Any] = json.loads(out.stdout)["self_play"]
+    if not result["atdrone"].startswith(str(tree)):
+        raise RuntimeError(f"{tree}: measured the atdrone of {result['atdrone']}")
+    return result
 
 
 def main() -> None:
@@ -74,21 +83,27 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=8)
     parser.add_argument("--reference", type=Path, default=None, help="another checkout to compare with")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per tree with --reference")
+    parser.add_argument("--epochs", type=int, default=None, help="PPO epochs (default: the default config's)")
     args = parser.parse_args()
     result: dict[str, object] = {"benchmark": "train_throughput", "task": args.task}
     result["target_pursuer_steps_per_s"] = 20000
     if args.reference is None:
-        result["self_play"] = measure(args.task, args.updates)
+        ppo = {"epochs": args.epochs} if args.epochs is not None else {}
+        result["self_play"] = measure(args.task, args.updates, **ppo)
     else:
-        rates: dict[str, list[float]] = {"this": [], "reference": []}
+        runs: dict[str, list[dict[str, Any]]] = {"this": [], "reference": []}
         for _ in range(args.rounds):
-            rates["this"].append(_subprocess_rate(HERE, args.task, args.updates))
-            rates["reference"].append(_subprocess_rate(args.reference.resolve(), args.task, args.updates))
+            runs["this"].append(_subprocess_rate(HERE, args.task, args.updates, args.epochs))
+            runs["reference"].append(_subprocess_rate(args.reference.resolve(), args.task, args.updates, args.epochs))
+        rates = {k: [float(r["pursuer_steps_per_s"]) for r in rs] for k, rs in runs.items()}
         this, ref = float(np.mean(rates["this"])), float(np.mean(rates["reference"]))
         result.update(
             reference=str(args.reference),
             rounds=args.rounds,
+            epochs=runs["this"][0]["ppo"]["epochs"],
             pursuer_steps_per_s={k: [round(v, 1) for v in vs] for k, vs in rates.items()},
+            split_s={k: [r["split_s"] for r in rs] for k, rs in runs.items()},
+            per_round_ratio=[round(a / b, 3) for a, b in zip(rates["this"], rates["reference"], strict=True)],
             mean={"this": round(this, 1), "reference": round(ref, 1)},
             ratio_this_over_reference=round(this / ref, 3),
             target_ratio=1.0,
