@@ -8,7 +8,7 @@ trained on. Optionally compares a best response (--br PATH) with self-play polic
 the paired difference of SUC (BR minus SP over the same episode starts) and its
 standard error, the share of episodes ended by a learner's collision or by the partners alone, and
 what collided (learner/partner with learner/partner, wall or obstacle).
-Usage: python benchmarks/zoo_drones.py [--episodes 500] [--seeds 0] [--br runs/br_zoo1/last.pt]
+Usage: python benchmarks/zoo_drones.py [--episodes 500] [--seeds 0] [--br runs/br_zoo1/last.pt] [--drones A.pt ...]
        python benchmarks/zoo_drones.py --only-br --br BR.pt --sp SP.pt --episodes 1000 --seeds 0 1 --out F.json
 """
 
@@ -32,6 +32,7 @@ def main() -> None:
     parser.add_argument("--br-zoo", default="zoo1")
     parser.add_argument("--sp", nargs="+", default=[str(CHECKPOINTS / "sp_high.pt")], help="self-play checkpoints")
     parser.add_argument("--only-br", action="store_true", help="skip the zoo drones, compare --br and --sp only")
+    parser.add_argument("--drones", nargs="+", type=Path, default=None, help="checkpoints instead of the zoo's")
     parser.add_argument("--out", default=None, help="also write the JSON to this file")
     args = parser.parse_args()
 
@@ -46,15 +47,17 @@ def main() -> None:
         return {m: float(np.mean([p[m] for p in per_seed])) for m in METRICS}
 
     out: dict[str, object] = {"benchmark": "zoo_drones", "episodes": args.episodes, "seeds": args.seeds}
-    for path in [] if args.only_br else sorted(CHECKPOINTS.glob("*.pt")):
+    drones = args.drones if args.drones is not None else sorted(CHECKPOINTS.glob("*.pt"))
+    for path in [] if args.only_br else drones:
+        name = path.parent.name if path.stem == "last" else path.stem  # a run's runs/NAME/last.pt is NAME
         header = read_header(path)
         task = header["task"]
         entry: dict[str, object] = {"task": task, "seed": header["seed"], "env_steps": header["step"]}
         entry["self_play"] = self_play(path)
         for zoo in args.zoos:
             entry[zoo] = evaluate(load_policy(path), task, zoo, episodes=args.episodes, seeds=args.seeds).mean
-        out[path.stem] = entry
-        print(json.dumps({path.stem: entry}), flush=True)
+        out[name] = entry
+        print(json.dumps({name: entry}), flush=True)
     if args.br:
         task = read_header(args.br)["task"]
 
