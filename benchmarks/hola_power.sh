@@ -8,9 +8,23 @@
 # the 4-5 first guessed): run it in chunks, each run of this script continues where the last
 # stopped (finished runs and evaluations are kept). Its runs began at 2 PPO epochs, the default of
 # the time: --ppo-epochs 2 keeps every run on it since the default became 4.
-#   nohup nice -n 19 benchmarks/hola_power.sh > reports/hola_power.log 2>&1 &
+#
+# Every run trains with the code of commit a7597d6 (torch's own tanh in training; issue 26 changed the
+# training kernels while the study ran): the script runs that commit from a git worktree beside this
+# one (../hola_tree, made if missing; HOLA_POWER_TREE names another), with this checkout's .venv, and
+# writes into this checkout's reports/ and benchmarks/results/hola_power/. The report phase can be rerun
+# with today's code: .venv/bin/python benchmarks/hola_report.py ... --phases report.
+#   nohup nice -n 19 benchmarks/hola_power.sh >> reports/hola_power.log 2>&1 &
 set -e
 cd "$(dirname "$0")/.."
+main=$PWD
+tree=${HOLA_POWER_TREE:-$main/../hola_tree}
+[ -d "$tree" ] || git worktree add --detach "$tree" a7597d6
+[ "$(git -C "$tree" rev-parse --short=7 HEAD)" = a7597d6 ] || { echo "$tree is not at a7597d6" >&2; exit 2; }
+mkdir -p reports benchmarks/results/hola_power
+for p in .venv reports benchmarks/results/hola_power; do [ -e "$tree/$p" ] || ln -s "$main/$p" "$tree/$p"; done
+cd "$tree"
+export PYTHONPATH=$tree
 exec .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o \
   --algorithms hola hola_no_g sp fcp --fcp-seeds 2 --fcp-levels 2 \
   --seeds 0 1 2 3 4 5 6 7 --episodes 2000 --ppo-epochs 2 --zoos zoo1 zoo2 zoo3 zoo4 \
