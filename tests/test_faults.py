@@ -114,6 +114,32 @@ def test_a_fresh_worker_replays_a_job_to_the_fragment_it_is_asked_for(local_ray)
         ray.kill(b)
 
 
+def test_a_worker_dead_past_its_restarts_fails_the_updates_naming_it(local_ray, monkeypatch):
+    """A rollout worker that has died once more than its restarts allow ends run_updates with WorkerFailed naming
+    the worker's index and the cap, instead of Ray retrying (or the coordinator waiting) for ever. The cap is 1
+    here (the actor's options and WORKER_RESTARTS alike) so that two kills spend it."""
+    from atdrone.service import actors
+
+    monkeypatch.setattr(actors, "WORKER_RESTARTS", 1)
+    job, _ = _job()
+    learner = actors.LearnerActor.remote(LearnerSpec(ppo=job.ppo, num_e=2, num_p=4, seed=0, total_updates=2))
+    healthy = RolloutWorkerActor.remote(TASK)
+    doomed = RolloutWorkerActor.options(max_restarts=1, max_task_retries=1).remote(TASK)
+    try:
+        first = ray.get(doomed.pid.remote())
+        ray.kill(doomed, no_restart=False)  # the one restart
+        deadline = time.monotonic() + 60
+        while ray.get(doomed.pid.remote(), timeout=60) == first:  # a probe may beat the kill to the old process
+            assert time.monotonic() < deadline, "the worker was never restarted"
+            time.sleep(0.2)
+        ray.kill(doomed, no_restart=False)  # past the cap: dead for good
+        with pytest.raises(actors.WorkerFailed, match=r"rollout worker 1 died and was restarted 1 times, the cap"):
+            actors.run_updates(learner, [healthy, doomed], [job, job], 2, 64)
+    finally:
+        for actor in (learner, healthy, doomed):
+            ray.kill(actor)
+
+
 # ------------------------------------------------------------------ the driver SIGKILLed at every step
 REPO = Path(__file__).resolve().parents[1]
 FAULTY = {
