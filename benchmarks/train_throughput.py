@@ -27,6 +27,7 @@ HERE = Path(__file__).resolve().parent.parent
 
 
 def measure(task: str, updates: int, mode: str = "self_play", **ppo: object) -> dict[str, object]:
+    import atdrone
     from atdrone.learn.trainer import Trainer, load_train_config
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -39,8 +40,6 @@ def measure(task: str, updates: int, mode: str = "self_play", **ppo: object) -> 
         wall = time.perf_counter() - start
     samples = updates * trainer.ppo.num_envs * trainer.ppo.rollout_steps * trainer.worker.match.num_ctrl
     split = {k: float(np.sum([r[f"perf/{k}_s"] for r in rows])) for k in ("simulation", "inference", "update")}
-    import atdrone
-
     return {
         "mode": mode,
         "atdrone": str(Path(atdrone.__file__).resolve().parent),

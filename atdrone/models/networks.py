@@ -69,7 +69,7 @@ NET_LIMITS = {"entity_dim": (1, 1024), "hidden": (1, 4096), "history": (0, 64)}
 
 
 class _NumpyTanh(torch.autograd.Function):
-    """tanh by numpy's SIMD kernel (float32 on the CPU: ~7x faster than torch 2.13's, within an ulp of it);
+    """tanh by numpy's SIMD kernel (float32 on the CPU: ~7x faster than torch 2.13's, within two ulps of it);
     the gradient is torch's own tanh_backward of the saved output."""
 
     @staticmethod
