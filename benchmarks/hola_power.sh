@@ -6,27 +6,38 @@
 # and w/o g. Many hours of the 2-core machine (measured: a HOLA generation after Pi_0 takes
 # 80-110 s on the idle machine, 300-770 s beside a test suite; the 32 runs about 8 hours idle, not
 # the 4-5 first guessed): run it in chunks, each run of this script continues where the last
-# stopped (finished runs and evaluations are kept). Its runs began at 2 PPO epochs, the default of
-# the time: --ppo-epochs 2 keeps every run on it since the default became 4.
+# stopped (finished runs and evaluations are kept). Its runs use 2 PPO epochs, the default when the
+# study was designed (--ppo-epochs 2; the default is 4 since).
 #
-# Every run trains with the code of commit a7597d6 (torch's own tanh in training; issue 26 changed the
-# training kernels while the study ran): the script runs that commit from a git worktree beside this
+# Every run trains with the code of commit 9f2ab7f (issue 26's training kernels), so edits made while the
+# study runs for hours cannot reach its runs: the script runs that commit from a git worktree beside this
 # one (../hola_tree, made if missing; HOLA_POWER_TREE names another), with this checkout's .venv, and
-# writes into this checkout's reports/ and benchmarks/results/hola_power/. The report phase can be rerun
+# writes into this checkout's reports/ and benchmarks/results/hola_power/; after each seed the
+# finished runs' kept files go to benchmarks/results/hola_power/archive/ (commit it between chunks:
+# benchmarks/hola_archive.py restores them into a fresh checkout's reports/). The report phase can be rerun
 # with today's code: .venv/bin/python benchmarks/hola_report.py ... --phases report.
 #   nohup nice -n 19 benchmarks/hola_power.sh >> reports/hola_power.log 2>&1 &
 set -e
 cd "$(dirname "$0")/.."
 main=$PWD
 tree=${HOLA_POWER_TREE:-$main/../hola_tree}
-[ -d "$tree" ] || git worktree add --detach "$tree" a7597d6
-[ "$(git -C "$tree" rev-parse --short=7 HEAD)" = a7597d6 ] || { echo "$tree is not at a7597d6" >&2; exit 2; }
+[ -d "$tree" ] || git worktree add --detach "$tree" 9f2ab7f
+[ "$(git -C "$tree" rev-parse --short=7 HEAD)" = 9f2ab7f ] || { echo "$tree is not at 9f2ab7f" >&2; exit 2; }
 mkdir -p reports benchmarks/results/hola_power
 for p in .venv reports benchmarks/results/hola_power; do [ -e "$tree/$p" ] || ln -s "$main/$p" "$tree/$p"; done
-cd "$tree"
-export PYTHONPATH=$tree
-exec .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o \
-  --algorithms hola hola_no_g sp fcp --fcp-seeds 2 --fcp-levels 2 \
-  --seeds 0 1 2 3 4 5 6 7 --episodes 2000 --ppo-epochs 2 --zoos zoo1 zoo2 zoo3 zoo4 \
-  --references sp hola_no_g --title "HOLA-Drone V2 with the power to decide (issue 22)" \
-  --out reports/hola_power --results benchmarks/results/hola_power --resume "$@"
+study() {  # hola_report.py of the pinned tree, with this study's arguments and any given
+  (cd "$tree" && PYTHONPATH=$tree .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o \
+    --algorithms hola hola_no_g sp fcp --fcp-seeds 2 --fcp-levels 2 \
+    --episodes 2000 --ppo-epochs 2 --zoos zoo1 zoo2 zoo3 zoo4 \
+    --references sp hola_no_g --title "HOLA-Drone V2 with the power to decide (issue 22)" \
+    --out reports/hola_power --results benchmarks/results/hola_power --resume "$@")
+}
+archive() {  # the finished runs and evaluations into the committed archive (reports/ may not survive a session)
+  PYTHONPATH=$main .venv/bin/python benchmarks/hola_archive.py "$1" --out reports/hola_power \
+    --archive benchmarks/results/hola_power/archive
+}
+archive restore
+# one seed at a time, archived after each: a chunk's finished runs outlive the machine it ran on
+for seed in 0 1 2 3 4 5 6 7; do study --seeds "$seed" --phases train; archive save; done
+for seed in 0 1 2 3 4 5 6 7; do study --seeds "$seed" --phases evaluate; archive save; done
+study --seeds 0 1 2 3 4 5 6 7 --phases report
