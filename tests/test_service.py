@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import ray
+import torch
 
 from atdrone.config import ConfigError, load_task
 from atdrone.models.checkpoint import load_checkpoint, read_header
@@ -533,3 +534,40 @@ def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path
     assert summary["best"] == champion.tags["member"] == expected
     assert planted[expected] == 5.0  # the test zoo's last choice
     assert champion.tags["score_metric"] == "validation_SUC" and float(champion.tags["score"]) == score
+
+
+def test_a_drivers_runs_share_one_learner_that_trains_as_a_new_one_would(
+    local_ray, tmp_path, monkeypatch, mlflow_store
+):
+    """The driver's learner pool: a second run in the same process trains on the first run's learner actor (no
+    new process), and every member it trains has the weights of the first run's (on a new learner), bit for bit.
+    A learner that died while idle is not handed out again."""
+    from atdrone.service import pool
+
+    fresh = pool.LearnerPool()
+    monkeypatch.setattr(pool, "LEARNERS", fresh)
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    kw = {"algorithm": "sp", "generations": 2, "updates_per_generation": 2, "final_zoo": ""}
+    weights = {}
+    for name in ("pool_a", "pool_b"):
+        run_experiment(_cfg(tmp_path, name, **kw), tracking_uri=uri, progress=False)
+        members = sorted((tmp_path / name / "members").glob("*.pt"))
+        weights[name] = {p.name: load_checkpoint(p)[0].state_dict() for p in members}
+        assert fresh.created == 1 and fresh.idle() == 1  # the second run started no learner
+    assert list(weights["pool_a"]) == list(weights["pool_b"]) == ["sp-g0-0.pt", "sp-g1-0.pt"]
+    for member, state in weights["pool_a"].items():
+        other = weights["pool_b"][member]
+        assert all(torch.equal(state[k], other[k]) for k in state), member
+    learner = fresh.take()
+    ray.kill(learner)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:  # the kill lands asynchronously: a call may still be answered first
+        try:
+            ray.get(learner.ping.remote(), timeout=30)
+        except ray.exceptions.RayActorError:
+            break
+        time.sleep(0.05)
+    fresh.give_back([learner])
+    assert fresh.idle() == 0
+    fresh.take()
+    assert fresh.created == 2

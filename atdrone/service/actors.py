@@ -185,7 +185,8 @@ class LearnerActor:
     """A :class:`~atdrone.learn.learner.Learner` behind Ray: the same object as the local trainer's.
 
     One actor serves one training after another (:meth:`reset` with the next spec), so a
-    run pays for starting a process that imports torch once, not once per learner.
+    run pays for starting a process that imports torch once, not once per learner (and a
+    driver once for all its runs: :mod:`atdrone.service.pool`).
     """
 
     def __init__(self, spec: LearnerSpec | None = None, threads: int = 1) -> None:
@@ -197,6 +198,14 @@ class LearnerActor:
         """A fresh learner of ``spec``: what a new actor made with it would hold."""
         torch.set_num_threads(threads)  # the rollout workers are idle while a learner updates
         self.learner = Learner(spec)
+
+    def release(self) -> None:
+        """Drop the learner (model, optimiser): the actor waits for its next :meth:`reset` (a pooled learner)."""
+        self.__dict__.pop("learner", None)
+
+    def ping(self) -> bool:
+        """True: the actor answers."""
+        return True
 
     def get_weights(self) -> dict[str, torch.Tensor]:
         return self.learner.get_weights()

@@ -4,8 +4,8 @@ The algorithm (a class of :data:`atdrone.population.ALGORITHMS`) decides what a
 generation does; the coordinator does it (:class:`atdrone.population.base.Oracle`):
 
 - ``evaluate(teams)``: play each team on the rollout workers and record the matches;
-- ``train(start_from, partners, hparams)``: a learner (an actor of the run's pool, reset
-  to the new spec) from a member's weights, updated ``updates_per_generation`` times on
+- ``train(start_from, partners, hparams)``: a learner (an idle learner actor, the
+  driver's to begin with, reset to the new spec) from a member's weights, updated ``updates_per_generation`` times on
   fragments the workers collect with partners drawn from ``partners`` per environment
   and per episode;
 - ``register(trained, parents)``: the learner's checkpoint and registry row (the learner
@@ -63,7 +63,9 @@ class Coordinator:
         run_dir: str,
         state: Mapping[str, Any] | None = None,
         registry: Any = None,
+        learners: Sequence[Any] = (),
     ) -> None:
+        """``learners``: idle learner actors to train with first (the driver's pool); more are made as needed."""
         self.cfg = cfg
         self.run = cfg.name
         self.run_dir = Path(run_dir)
@@ -86,7 +88,7 @@ class Coordinator:
         if "algorithm" in state:
             self.algorithm.load_state(state["algorithm"])
         self.zoo_specs: dict[str, MemberSpec] = {}
-        self._idle_learners: list[Any] = []  # learner actors between trainings (a pool: one process, many learners)
+        self._idle_learners: list[Any] = list(learners)  # learner actors between trainings (one process, many learners)
         self._begin(self.generation)
 
     def _new_learner(self) -> Any:

@@ -177,6 +177,7 @@ def _run(
     from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
     from atdrone.service.coordinator import Coordinator
+    from atdrone.service.pool import LEARNERS
 
     run_dir = Path(cfg.out_dir).resolve() / cfg.name
     state_path = run_dir / STATE_FILE
@@ -205,13 +206,17 @@ def _run(
     registry = registry_actor(db, name=registry_name(cfg.name), node=ray.get_runtime_context().get_node_id())
     start = saved.get("coordinator", {}).get("generation", 0)
     ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
+    # the run's first learner comes from this process's pool and goes back to it: the next run needs no new one
+    learner = LEARNERS.take(cfg.learner_gpus)
     coordinator = Coordinator.options(max_concurrency=2).remote(  # the 2nd thread answers progress()
-        cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry
+        cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry, [learner]
     )
     try:
-        return _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
-    finally:  # the run's actors end with it; the registry's name is free for the next run
+        summary = _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
+    finally:  # the run's other actors end with it; the registry's name is free for the next run
         _release(coordinator, registry, registry_name(cfg.name))
+    LEARNERS.give_back([learner], cfg.learner_gpus)  # a run that failed drops it (Ray ends it with the handle)
+    return summary
 
 
 SUMMARY_FILE = "summary.json"
