@@ -12,7 +12,7 @@
 # Every run trains with the code of commit 9f2ab7f (issue 26's training kernels), so edits made while the
 # study runs for hours cannot reach its runs: the script runs that commit from a git worktree beside this
 # one (../hola_tree, made if missing; HOLA_POWER_TREE names another), with this checkout's .venv, and
-# writes into this checkout's reports/ and benchmarks/results/hola_power/; after each seed the
+# writes into this checkout's reports/ and benchmarks/results/hola_power/; after each run the
 # finished runs' kept files go to benchmarks/results/hola_power/archive/ (commit it between chunks:
 # benchmarks/hola_archive.py restores them into a fresh checkout's reports/). The report phase can be rerun
 # with today's code: .venv/bin/python benchmarks/hola_report.py ... --phases report.
@@ -37,7 +37,9 @@ archive() {  # the finished runs and evaluations into the committed archive (rep
     --archive benchmarks/results/hola_power/archive
 }
 archive restore
-# one seed at a time, archived after each: a chunk's finished runs outlive the machine it ran on
-for seed in 0 1 2 3 4 5 6 7; do study --seeds "$seed" --phases train; archive save; done
+# one run at a time, archived after each: a chunk's finished runs outlive the machine it ran on
+for seed in 0 1 2 3 4 5 6 7; do
+  for alg in hola hola_no_g sp fcp; do study --seeds "$seed" --algorithms "$alg" --phases train; archive save; done
+done
 for seed in 0 1 2 3 4 5 6 7; do study --seeds "$seed" --phases evaluate; archive save; done
 study --seeds 0 1 2 3 4 5 6 7 --phases report
