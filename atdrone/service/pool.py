@@ -4,8 +4,8 @@ A learner actor is a process that imports torch and builds an Adam optimiser (wh
 ``torch._dynamo``): about 3 CPU-seconds to start. Within a run the coordinator already reuses
 its learners (:meth:`LearnerActor.reset` with the next spec gives what a new actor would
 hold); this pool carries them over to the driver's next run, so a process that runs many
-experiments (the benchmark grid's cells, ``benchmarks/hola_report.py``, a test session) starts
-one learner, not one per run.
+experiments (``benchmarks/hola_report.py``, a test session, a benchmark cell's Ray worker that
+Ray reuses for the next cell) starts one learner, not one per run.
 
 The driver creates the pooled learners, so they belong to the driver process and outlive
 each run's coordinator; they end with the driver's Ray connection. A learner handed back is
