@@ -39,7 +39,12 @@ archive() {  # the finished runs and evaluations into the committed archive (rep
 archive restore
 # one run at a time, archived after each: a chunk's finished runs outlive the machine it ran on
 for seed in 0 1 2 3 4 5 6 7; do
-  for alg in hola hola_no_g sp fcp; do study --seeds "$seed" --algorithms "$alg" --phases train; archive save; done
+  for alg in hola hola_no_g sp fcp; do
+    # a finished run (restored from the archive or trained before) is skipped without starting Ray
+    [ -e "reports/hola_power/runs/4p2e5o-$alg-s$seed/population.csv" ] && continue
+    study --seeds "$seed" --algorithms "$alg" --phases train
+    archive save
+  done
 done
 for seed in 0 1 2 3 4 5 6 7; do study --seeds "$seed" --phases evaluate; archive save; done
 study --seeds 0 1 2 3 4 5 6 7 --phases report
