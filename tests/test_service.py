@@ -547,14 +547,14 @@ def test_a_drivers_runs_share_one_learner_that_trains_as_a_new_one_would(
     fresh = pool.LearnerPool()
     monkeypatch.setattr(pool, "LEARNERS", fresh)
     uri = mlflow_store(tmp_path / "mlflow.db")
-    kw = {"algorithm": "sp", "generations": 2, "updates_per_generation": 2, "final_zoo": ""}
+    kw = {"algorithm": "sp", "generations": 1, "updates_per_generation": 2, "final_zoo": "", "num_workers": 1}
     weights = {}
     for name in ("pool_a", "pool_b"):
         run_experiment(_cfg(tmp_path, name, **kw), tracking_uri=uri, progress=False)
         members = sorted((tmp_path / name / "members").glob("*.pt"))
         weights[name] = {p.name: load_checkpoint(p)[0].state_dict() for p in members}
         assert fresh.created == 1 and fresh.idle() == 1  # the second run started no learner
-    assert list(weights["pool_a"]) == list(weights["pool_b"]) == ["sp-g0-0.pt", "sp-g1-0.pt"]
+    assert list(weights["pool_a"]) == list(weights["pool_b"]) == ["sp-g0-0.pt"]
     for member, state in weights["pool_a"].items():
         other = weights["pool_b"][member]
         assert all(torch.equal(state[k], other[k]) for k in state), member
