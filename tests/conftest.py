@@ -139,6 +139,21 @@ def _hover_and_turn_once(
     yield
 
 
+@pytest.fixture(scope="session")
+def load_script() -> Callable[[Path], Any]:
+    """``load_script(path)``: a script of jobs/ or benchmarks/ imported as a module (they are no package)."""
+    import importlib.util
+
+    def load(path: Path) -> Any:
+        spec = importlib.util.spec_from_file_location(f"atdrone_script_{path.stem}", path)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
+
+
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     """Nothing left running at exit: Ray shut down, figures closed (a live Ray core worker at interpreter exit
     can crash the process after the tests passed)."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from types import ModuleType
@@ -13,12 +12,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
-def archive_mod() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("hola_archive", ROOT / "benchmarks" / "hola_archive.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def archive_mod(load_script) -> ModuleType:
+    return load_script(ROOT / "benchmarks" / "hola_archive.py")
 
 
 def _run(out: Path, name: str, algorithm: dict[str, list[str]], samples: int, members: list[str]) -> Path:
