@@ -9,7 +9,6 @@ every Ray on the machine).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import re
@@ -21,10 +20,9 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import pandas as pd
@@ -74,14 +72,6 @@ def test_bad_task_exits_non_zero_with_one_line(tmp_path: Path) -> None:
     assert not any(tmp_path.iterdir())
 
 
-def _load_script(path: Path) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"atdrone_job_{path.stem}", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize(
     ("script", "args", "needle"),
     [
@@ -93,9 +83,14 @@ def _load_script(path: Path) -> ModuleType:
     ],
 )
 def test_bad_input_is_refused_in_one_line(
-    script: Path, args: list[str], needle: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    script: Path,
+    args: list[str],
+    needle: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    load_script: Callable[[Path], Any],
 ) -> None:
-    main = _load_script(script).main
+    main = load_script(script).main
     assert main([*args, "--out" if script == EVALUATE else "--out-dir", str(tmp_path)]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"jobs/{script.name}: error:") and needle in lines[0], lines
@@ -207,7 +202,7 @@ def _parse(parser: Any, argv: list[str], command: list[str]) -> Any:
         pytest.fail(f"the cluster guide's command is refused: {shlex.join(command)}")
 
 
-def test_the_cluster_guides_job_commands_are_what_the_scripts_take() -> None:
+def test_the_cluster_guides_job_commands_are_what_the_scripts_take(load_script: Callable[[Path], Any]) -> None:
     """Every `python jobs/*.py ...` of the guide's code blocks parses with the script's own parser, names a config,
     task and zoo that load, and gives the run directory and the registry absolute paths (the guide's storage
     rule); every flag of the guide's script table is an option of the script; the GPU section's
@@ -216,7 +211,7 @@ def test_the_cluster_guides_job_commands_are_what_the_scripts_take() -> None:
     from atdrone.policies.zoo import load_zoo
     from atdrone.service.experiment import load_experiment
 
-    scripts = {"jobs/train.py": _load_script(TRAIN), "jobs/evaluate.py": _load_script(EVALUATE)}
+    scripts = {"jobs/train.py": load_script(TRAIN), "jobs/evaluate.py": load_script(EVALUATE)}
     ran = {name: 0 for name in scripts}
     for command in _guide_commands():
         for name, script in scripts.items():
@@ -275,12 +270,15 @@ def test_the_cluster_guides_ray_and_mlflow_commands_are_options_of_those_tools()
 
 
 def test_a_damaged_service_state_or_another_registry_dir_is_one_line_and_status_2(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    load_script: Callable[[Path], Any],
 ) -> None:
     from atdrone.service.experiment import load_experiment
 
     monkeypatch.setenv("ATDRONE_REGISTRY_DIR", "")  # unset, and restored after main sets it for --registry-dir
-    main = _load_script(TRAIN).main
+    main = load_script(TRAIN).main
     args = ["configs/experiments/hola_quick.json", "--resume", "--out-dir", str(tmp_path)]
     run_dir = tmp_path / "hola_quick"
     run_dir.mkdir()

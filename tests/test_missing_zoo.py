@@ -8,10 +8,8 @@ to refuse, with an error, when no zoo is left). The service's coordinator is tes
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
@@ -45,14 +43,6 @@ def _short_task(tmp_path: Path) -> Path:
     return path
 
 
-def _evaluate_job() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("evaluate_job", REPO / "jobs" / "evaluate.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_the_zoo_loads_names_its_missing_member_and_refuses_to_play(tmp_path):
     zoo = load_zoo(_ghosts(tmp_path))
     assert zoo.names == ["greedy", "ghost"] and zoo.missing == ["ghost"]
@@ -62,7 +52,7 @@ def test_the_zoo_loads_names_its_missing_member_and_refuses_to_play(tmp_path):
 
 @pytest.mark.parametrize("entry", ["atdrone evaluate", "jobs/evaluate.py"])
 def test_evaluate_all_zoos_plays_the_complete_one_and_skips_the_incomplete_one_saying_so(
-    entry, tmp_path, capsys, monkeypatch
+    entry, tmp_path, capsys, monkeypatch, load_script
 ):
     """--zoo all with zoo1 and the incomplete zoo: zoo1's cell is played, the other is listed as missing
     (table, JSON report) and a warning names the missing member."""
@@ -75,7 +65,7 @@ def test_evaluate_all_zoos_plays_the_complete_one_and_skips_the_incomplete_one_s
         rc = main(["evaluate", *args, "--out-dir", str(out), "--no-progress"])
         warning = "atdrone evaluate: warning: zoo ghosts is missing ghost; its cells are skipped"
     else:
-        rc = _evaluate_job().main([*args, "--out-dir", str(out)])
+        rc = load_script(REPO / "jobs" / "evaluate.py").main([*args, "--out-dir", str(out)])
         warning = "jobs/evaluate.py: warning: zoo ghosts is missing ghost; skipped"
     captured = capsys.readouterr()
     assert rc == 0, captured.err
@@ -94,10 +84,10 @@ def test_evaluate_all_zoos_plays_the_complete_one_and_skips_the_incomplete_one_s
     assert doc["cells"][0]["summary"]["episodes"] == 3
 
 
-def test_jobs_evaluate_with_only_an_incomplete_zoo_refuses_in_one_line(tmp_path, capsys):
+def test_jobs_evaluate_with_only_an_incomplete_zoo_refuses_in_one_line(tmp_path, capsys, load_script):
     """The job's counterpart of the CLI's refusal (tested in test_inputs.py): usage status 2, a warning
     and one error line, and no report written."""
-    job = _evaluate_job()
+    job = load_script(REPO / "jobs" / "evaluate.py")
     out = tmp_path / "out"
     rc = job.main(["--policy", "greedy", "--zoo", str(_ghosts(tmp_path)), "--episodes", "2", "--out-dir", str(out)])
     err = capsys.readouterr().err.splitlines()
