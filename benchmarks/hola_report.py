@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -47,6 +48,7 @@ import scipy.stats
 from atdrone.benchmark.budget import plan as budget_plan
 from atdrone.benchmark.stats import md_table, mean_std, paired_difference
 from atdrone.learn.ppo import PPOConfig
+from atdrone.population.hola import HolaConfig
 from atdrone.teams.evaluation import METRICS
 
 ALGORITHMS = ("hola", "hola_no_g", "sp", "pbt", "mappo", "naht_d", "naht_d_no_dec", "fcp")
@@ -276,8 +278,44 @@ def crossplay(args: argparse.Namespace) -> None:
 
 
 # ------------------------------------------------------------------ phase 3
+def noise_null(graph: dict[str, Any], temperature: float, seed: int, trials: int = 200) -> dict[str, float]:
+    """rho (softmin) when every learner hyperedge has one true outcome and they differ by measurement noise
+    alone: each weight drawn as the hyperedges' mean weight plus its measured standard error times N(0, 1).
+
+    Returns the mean entropy and largest rho over ``trials`` draws, and the gap between the two lowest
+    measured weights in standard errors of their difference: how far the worst profile stands out. Empty
+    with fewer than two hyperedges."""
+    import atdrone.population.hypergraph as hg
+
+    edges = graph.get("hyperedges", [])
+    key = graph.get("weight", "return")
+    if len(edges) < 2:
+        return {}
+    teams = [tuple(e["team"]) for e in edges]
+    w = np.array([e[key] for e in edges], dtype=np.float64)
+    se = np.array([e[f"{key}_se"] for e in edges], dtype=np.float64)
+    partners = len(teams[0]) - sum(m in graph["learners"] for m in teams[0])
+    rng = np.random.default_rng(seed)
+    entropies, largest = [], []
+    for _ in range(trials):
+        drawn = dict(zip(teams, (w.mean() + se * rng.standard_normal(len(w))).tolist(), strict=True))
+        shares = hg.member_shares(hg.softmin_profiles(drawn, graph["learners"], temperature))
+        rho = {m: shares.get(m, 0.0) / partners for m in graph["rho"]}
+        entropies.append(hg.distribution_entropy(rho))
+        largest.append(max(rho.values()))
+    low = np.argsort(w)[:2]
+    diff, sd = float(w[low[1]] - w[low[0]]), float(np.hypot(se[low[0]], se[low[1]]))
+    gap = diff / sd if sd > 0 else (math.inf if diff > 0 else 0.0)
+    return {"noise_entropy": float(np.mean(entropies)), "noise_max_rho": float(np.mean(largest)), "gap_z": gap}
+
+
 def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
     rows = []
+    temperatures = {}  # HOLA runs whose rho is the softmin: its temperature
+    for d in (Path(args.out) / "runs").glob("*-hola-s*"):
+        hola = json.loads((d / "config.json").read_text()).get("hola", {}) if (d / "config.json").exists() else {}
+        if hola.get("rho", HolaConfig.rho) == "softmin":
+            temperatures[d] = float(hola.get("temperature", HolaConfig.temperature))
     for task in args.tasks:
         for seed in args.seeds:
             for run_dir in sorted((Path(args.out) / "runs").glob(f"{task}-hola*-s{seed}")):
@@ -286,6 +324,7 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
                     graph = json.loads(doc.read_text())
                     rho = np.array(list(graph["rho"].values()))
                     null = graph.get("null", {})  # rho of random weights on the same hyperedges (older runs: none)
+                    noise = noise_null(graph, temperatures[run_dir], seed) if run_dir in temperatures else {}
                     rows.append(
                         {
                             "task": task,
@@ -302,6 +341,8 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
                             "null_entropy": null.get("entropy", float("nan")),
                             "null_entropy_sd": null.get("entropy_sd", float("nan")),
                             "null_max_rho": null.get("max_rho", float("nan")),
+                            **noise,
+                            "pi0_rho": float(sum(v for m, v in graph["rho"].items() if "-g0-" in m)),
                         }
                     )
     return pd.DataFrame(rows)
@@ -444,6 +485,10 @@ def report(args: argparse.Namespace) -> None:
                     "max_entropy",
                     "max_rho",
                     "null_max_rho",
+                    "noise_entropy",
+                    "noise_max_rho",
+                    "gap_z",
+                    "pi0_rho",
                     "contested_return",
                     "contested_SUC",
                 ]
@@ -451,7 +496,18 @@ def report(args: argparse.Namespace) -> None:
             .mean()
             .round(3)
         )
-        lines += ["", "## rho over generations (mean over seeds)", "", md_table(summary)]
+        lines += [
+            "",
+            "## rho over generations (mean over seeds)",
+            "",
+            "rho_entropy and max_rho: the run's rho over Pi - N_t (nats; the largest share). null_*: the same weights "
+            "permuted over the hyperedges (the run's own null, 200 trials). noise_*: the learner's hyperedges with one "
+            "true outcome, differing by their measured standard errors only (softmin runs). gap_z: the two lowest "
+            "hyperedge weights' difference in standard errors. pi0_rho: rho's mass on Pi_0 (w/o g: its uniform "
+            "share). contested_*: the share of nodes whose preference stayed within z standard errors.",
+            "",
+            md_table(summary),
+        ]
         plot_entropy(ent, Path(args.results) / "rho_entropy.png")
     text = "\n".join(lines)
     print(text)
@@ -512,7 +568,10 @@ def plot_entropy(ent: pd.DataFrame, path: Path) -> None:
             ax.errorbar(m.index, m["mean"], yerr=m["std"].fillna(0), label=algorithm, capsize=3)
         null = sub.groupby("generation")["null_entropy"].mean()
         if null.notna().any():
-            ax.plot(null.index, null.values, "k--", label="null: random weights, same hyperedges")
+            ax.plot(null.index, null.values, "k--", label="null: weights permuted over the hyperedges")
+        if "noise_entropy" in sub and sub["noise_entropy"].notna().any():
+            noise = sub.groupby("generation")["noise_entropy"].mean()
+            ax.plot(noise.index, noise.values, "k-.", label="null: equal outcomes + measured noise")
         m = sub.groupby("generation")["max_entropy"].mean()
         ax.plot(m.index, m.values, "k:", label="log |Pi - N_t| (uniform)")
         ax.set_title(f"rho entropy, {task}")
