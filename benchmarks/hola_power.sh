@@ -14,8 +14,8 @@
 # one (../hola_tree, made if missing; HOLA_POWER_TREE names another), with this checkout's .venv, and
 # writes into this checkout's reports/ and benchmarks/results/hola_power/; after each run the
 # finished runs' kept files go to benchmarks/results/hola_power/archive/ (commit it between chunks:
-# benchmarks/hola_archive.py restores them into a fresh checkout's reports/). The report phase can be rerun
-# with today's code: .venv/bin/python benchmarks/hola_report.py ... --phases report.
+# benchmarks/hola_archive.py restores them into a fresh checkout's reports/). The report phase runs this
+# checkout's code: it only reads what the runs and evaluations wrote.
 #   nohup nice -n 19 benchmarks/hola_power.sh >> reports/hola_power.log 2>&1 &
 set -e
 cd "$(dirname "$0")/.."
@@ -47,4 +47,9 @@ for seed in 0 1 2 3 4 5 6 7; do
   done
 done
 for seed in 0 1 2 3 4 5 6 7; do study --seeds "$seed" --phases evaluate; archive save; done
-study --seeds 0 1 2 3 4 5 6 7 --phases report
+# the report with this checkout's code (it only reads the runs and evaluations): rho against its nulls, paired
+# differences against SP, SP at HOLA's learner samples, w/o g and the Pi_0-only FCP
+PYTHONPATH=$main .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o --algorithms hola hola_no_g sp fcp \
+  --episodes 2000 --zoos zoo1 zoo2 zoo3 zoo4 --references sp sp@samples hola_no_g fcp \
+  --title "HOLA-Drone V2 with the power to decide (issue 22)" --out reports/hola_power \
+  --results benchmarks/results/hola_power --seeds 0 1 2 3 4 5 6 7 --phases report

@@ -566,11 +566,12 @@ def plot_entropy(ent: pd.DataFrame, path: Path) -> None:
         for algorithm, g in sub.groupby("algorithm"):
             m = g.groupby("generation")["rho_entropy"].agg(["mean", "std"])
             ax.errorbar(m.index, m["mean"], yerr=m["std"].fillna(0), label=algorithm, capsize=3)
-        null = sub.groupby("generation")["null_entropy"].mean()
+        drawn = sub[~sub.algorithm.str.startswith("hola_no_g")]  # the nulls of rho's rule (w/o g's rho is uniform)
+        null = drawn.groupby("generation")["null_entropy"].mean()
         if null.notna().any():
             ax.plot(null.index, null.values, "k--", label="null: weights permuted over the hyperedges")
-        if "noise_entropy" in sub and sub["noise_entropy"].notna().any():
-            noise = sub.groupby("generation")["noise_entropy"].mean()
+        if "noise_entropy" in drawn and drawn["noise_entropy"].notna().any():
+            noise = drawn.groupby("generation")["noise_entropy"].mean()
             ax.plot(noise.index, noise.values, "k-.", label="null: equal outcomes + measured noise")
         m = sub.groupby("generation")["max_entropy"].mean()
         ax.plot(m.index, m.values, "k:", label="log |Pi - N_t| (uniform)")
