@@ -65,6 +65,7 @@ def _copy(src: Path, dst: Path) -> bool:
 def _files_of(run_dir: Path, out: Path) -> list[Path]:
     files = [run_dir / name for name in RUN_FILES if (run_dir / name).exists()]
     files += sorted((run_dir / "generations").glob("*/hypergraph.json"))
+    files += sorted((run_dir / "generations").glob("*/pi0.json"))  # which Pi_0 members are which skill level
     files += [run_dir / "members" / f"{m}.pt" for m in sorted(_members_needed(run_dir, out))]
     return files
 

@@ -309,6 +309,17 @@ def noise_null(graph: dict[str, Any], temperature: float, seed: int, trials: int
     return {"noise_entropy": float(np.mean(entropies)), "noise_max_rho": float(np.mean(largest)), "gap_z": gap}
 
 
+def pi0_early_members(generations: Path) -> set[str] | None:
+    """Pi_0's snapshots before each seed's last (the lower skill levels), from generation 0's pi0.json; None
+    without it. Members are seed by seed, one per level: a seed's last level ends each block."""
+    path = generations / "000" / "pi0.json"
+    if not path.exists():
+        return None
+    doc = json.loads(path.read_text())
+    levels = len(doc["levels"])
+    return {m for i, m in enumerate(doc["members"]) if i % levels != levels - 1}
+
+
 def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
     rows = []
     temperatures = {}  # HOLA runs whose rho is the softmin: its temperature
@@ -320,6 +331,7 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
         for seed in args.seeds:
             for run_dir in sorted((Path(args.out) / "runs").glob(f"{task}-hola*-s{seed}")):
                 algorithm, gens = run_dir.name[len(task) + 1 : -len(f"-s{seed}")], run_dir / "generations"
+                early = pi0_early_members(gens)
                 for doc in sorted(gens.glob("*/hypergraph.json")) if gens.exists() else []:
                     graph = json.loads(doc.read_text())
                     rho = np.array(list(graph["rho"].values()))
@@ -343,6 +355,9 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
                             "null_max_rho": null.get("max_rho", float("nan")),
                             **noise,
                             "pi0_rho": float(sum(v for m, v in graph["rho"].items() if "-g0-" in m)),
+                            "pi0_early_rho": float(sum(v for m, v in graph["rho"].items() if m in early))
+                            if early is not None
+                            else float("nan"),
                         }
                     )
     return pd.DataFrame(rows)
@@ -489,6 +504,7 @@ def report(args: argparse.Namespace) -> None:
                     "noise_max_rho",
                     "gap_z",
                     "pi0_rho",
+                    "pi0_early_rho",
                     "contested_return",
                     "contested_SUC",
                 ]
@@ -504,7 +520,8 @@ def report(args: argparse.Namespace) -> None:
             "permuted over the hyperedges (the run's own null, 200 trials). noise_*: the learner's hyperedges with one "
             "true outcome, differing by their measured standard errors only (softmin runs). gap_z: the two lowest "
             "hyperedge weights' difference in standard errors. pi0_rho: rho's mass on Pi_0 (w/o g: its uniform "
-            "share). contested_*: the share of nodes whose preference stayed within z standard errors.",
+            "share); pi0_early_rho: on Pi_0's snapshots before each seed's last. contested_*: the share of nodes "
+            "whose preference stayed within z standard errors.",
             "",
             md_table(summary),
         ]

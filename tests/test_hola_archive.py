@@ -27,6 +27,7 @@ def _run(out: Path, name: str, algorithm: dict[str, list[str]], samples: int, me
         (run / "generations" / str(g)).mkdir(parents=True)
         (run / "generations" / str(g) / "hypergraph.json").write_text(json.dumps({"g": g}))
         (run / "generations" / str(g) / "summary.json").write_text("{}")
+    (run / "generations" / "0" / "pi0.json").write_text('{"levels": [8, 8]}')
     for m in members:
         (run / "members" / f"{m}.pt").write_bytes(m.encode() * 100)
     return run
@@ -49,7 +50,7 @@ def test_save_keeps_what_the_later_phases_read_and_only_that(archive_mod: Module
     archive = study.parent / "archive"
     written = archive_mod.save(study, archive)
     kept = sorted(str(p.relative_to(archive)) for p in archive.rglob("*") if p.is_file())
-    files = ("compute.json", "generations/0/hypergraph.json", "generations/1/hypergraph.json")
+    files = ("compute.json", "generations/0/hypergraph.json", "generations/0/pi0.json", "generations/1/hypergraph.json")
     runs = [
         f"runs/4p2e5o-{alg}-s0/{f}" for alg in ("hola", "sp") for f in (*files, "population.csv", "service_state.json")
     ]

@@ -68,3 +68,15 @@ def test_a_graph_with_one_hyperedge_has_no_noise_null(report_mod: ModuleType) ->
     graph = _graph([1.0, 2.0, 3.0], [1.0, 1.0, 1.0])
     graph["hyperedges"] = graph["hyperedges"][:1]
     assert report_mod.noise_null(graph, temperature=2.0, seed=0) == {}
+
+
+def test_pi0s_early_members_are_each_seeds_snapshots_before_its_last(report_mod: ModuleType, tmp_path: Path) -> None:
+    """pi0.json lists the members seed by seed, one per skill level: 2 seeds x 3 levels -> the first two of each."""
+    import json
+
+    gens = tmp_path / "generations"
+    assert report_mod.pi0_early_members(gens) is None  # a run without the file (older archives)
+    (gens / "000").mkdir(parents=True)
+    members = ["s0a", "s0b", "s0c", "s1a", "s1b", "s1c"]
+    (gens / "000" / "pi0.json").write_text(json.dumps({"seeds": 2, "levels": [5, 5, 6], "members": members}))
+    assert report_mod.pi0_early_members(gens) == {"s0a", "s0b", "s1a", "s1b"}
