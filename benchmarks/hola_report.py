@@ -177,7 +177,7 @@ def evaluate_runs(args: argparse.Namespace) -> None:
                 if target.exists() or not (run_dir / "population.csv").exists():
                     continue
                 label = f"{algorithm}+{args.tag}" if args.tag else algorithm
-                members = {label: final_member(run_dir, algorithm)}
+                members: dict[str, str | None] = {label: final_member(run_dir, algorithm)}
                 if algorithm == "sp" and not args.tag:
                     members["sp@samples"] = sp_at_samples(run_dir, task, seed, args)
                 rows: list[dict[str, Any]] = []
@@ -368,17 +368,17 @@ def report(args: argparse.Namespace) -> None:
     budget_rows = []
     profile_rows: list[dict[str, Any]] = []
     for path in sorted((Path(args.out) / "eval").glob("*.json")):
-        doc = json.loads(path.read_text())
-        for row in doc["rows"]:
-            evals.append({"task": doc["task"], "seed": doc["seed"], **row})
-        profile_rows += [{"task": doc["task"], "seed": doc["seed"], **row} for row in doc.get("profiles", [])]
+        ev = json.loads(path.read_text())
+        for row in ev["rows"]:
+            evals.append({"task": ev["task"], "seed": ev["seed"], **row})
+        profile_rows += [{"task": ev["task"], "seed": ev["seed"], **row} for row in ev.get("profiles", [])]
         # evaluations written before compute was recorded have none: left out, shown as '-'
         spent = {
-            k: sum(r[k] for r in doc["rows"])
+            k: sum(r[k] for r in ev["rows"])
             for k in ("eval_wall_s", "eval_cpu_s")
-            if doc["rows"] and all(k in r for r in doc["rows"])
+            if ev["rows"] and all(k in r for r in ev["rows"])
         }
-        budget_rows.append({"run": path.stem, **doc["budget"], "compute": doc.get("compute", {}), **spent})
+        budget_rows.append({"run": path.stem, **ev["budget"], "compute": ev.get("compute", {}), **spent})
     if not evals:
         print("[report] nothing evaluated yet")
         return
