@@ -428,7 +428,12 @@ def test_bridge_resets_estimators_arms_flies_full_state_and_reports_a_lost_link(
             assert all(fleet.drone(n).counts["idle_planner_motors_off"] == 0 for n in "ab")
             ages = bridge.link_age()
             assert ages["c"] > 0.5 > max(ages["a"], ages["b"])
-            assert fleet.drone("a").counts["setpoint_full_state"] == 10 and fleet.drone("a").counts["extpose"] > 50
+            # every setpoint the sender sent (one per drone a batch) arrived as a full-state packet; the sender sends
+            # the latest post per drone, so two posts can meet in one batch when its thread is late (a loaded host
+            # made 9 of the 10): at most two of the ten merged
+            batches, rest = divmod(bridge.sent()["setpoint"], 3)
+            assert rest == 0 and 8 <= batches <= 10, bridge.sent()
+            assert fleet.drone("a").counts["setpoint_full_state"] == batches and fleet.drone("a").counts["extpose"] > 50
         finally:
             bridge.close()
             mocap.stop()
