@@ -309,15 +309,15 @@ def noise_null(graph: dict[str, Any], temperature: float, seed: int, trials: int
     return {"noise_entropy": float(np.mean(entropies)), "noise_max_rho": float(np.mean(largest)), "gap_z": gap}
 
 
-def pi0_early_members(generations: Path) -> set[str] | None:
-    """Pi_0's snapshots before each seed's last (the lower skill levels), from generation 0's pi0.json; None
-    without it. Members are seed by seed, one per level: a seed's last level ends each block."""
+def pi0_members(generations: Path) -> tuple[set[str], set[str]] | None:
+    """Pi_0's members and its snapshots before each seed's last (the lower skill levels), from generation 0's
+    pi0.json; None without it. Members are seed by seed, one per level: a seed's last level ends each block."""
     path = generations / "000" / "pi0.json"
     if not path.exists():
         return None
     doc = json.loads(path.read_text())
     levels = len(doc["levels"])
-    return {m for i, m in enumerate(doc["members"]) if i % levels != levels - 1}
+    return set(doc["members"]), {m for i, m in enumerate(doc["members"]) if i % levels != levels - 1}
 
 
 def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
@@ -331,7 +331,7 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
         for seed in args.seeds:
             for run_dir in sorted((Path(args.out) / "runs").glob(f"{task}-hola*-s{seed}")):
                 algorithm, gens = run_dir.name[len(task) + 1 : -len(f"-s{seed}")], run_dir / "generations"
-                early = pi0_early_members(gens)
+                pi0 = pi0_members(gens)
                 for doc in sorted(gens.glob("*/hypergraph.json")) if gens.exists() else []:
                     graph = json.loads(doc.read_text())
                     rho = np.array(list(graph["rho"].values()))
@@ -354,10 +354,14 @@ def rho_entropy(args: argparse.Namespace) -> pd.DataFrame:
                             "null_entropy_sd": null.get("entropy_sd", float("nan")),
                             "null_max_rho": null.get("max_rho", float("nan")),
                             **noise,
-                            "pi0_rho": float(sum(v for m, v in graph["rho"].items() if "-g0-" in m)),
-                            "pi0_early_rho": float(sum(v for m, v in graph["rho"].items() if m in early))
-                            if early is not None
-                            else float("nan"),
+                            **(
+                                {
+                                    "pi0_rho": float(sum(v for m, v in graph["rho"].items() if m in pi0[0])),
+                                    "pi0_early_rho": float(sum(v for m, v in graph["rho"].items() if m in pi0[1])),
+                                }
+                                if pi0 is not None
+                                else {}
+                            ),
                         }
                     )
     return pd.DataFrame(rows)

@@ -75,8 +75,8 @@ def test_pi0s_early_members_are_each_seeds_snapshots_before_its_last(report_mod:
     import json
 
     gens = tmp_path / "generations"
-    assert report_mod.pi0_early_members(gens) is None  # a run without the file (older archives)
+    assert report_mod.pi0_members(gens) is None  # a run without the file (older archives)
     (gens / "000").mkdir(parents=True)
     members = ["s0a", "s0b", "s0c", "s1a", "s1b", "s1c"]
     (gens / "000" / "pi0.json").write_text(json.dumps({"seeds": 2, "levels": [5, 5, 6], "members": members}))
-    assert report_mod.pi0_early_members(gens) == {"s0a", "s0b", "s1a", "s1b"}
+    assert report_mod.pi0_members(gens) == (set(members), {"s0a", "s0b", "s1a", "s1b"})
