@@ -226,9 +226,11 @@ def test_mellinger_tracks_a_one_step_ahead_position_slowly_and_a_full_state_refe
             time.sleep(0.1)
         slow = (float(d.pos[0]) - x0) / (time.monotonic() - t0)
         assert 0.03 < slow < 0.09
-        ref, t0, x0 = float(d.pos[0]), time.monotonic(), float(d.pos[0])
+        start, t0 = float(d.pos[0]), time.monotonic()
         samples = []
         for _ in range(30):
+            # a reference at 0.3 m/s in wall time: a late loop (a loaded host) sends a later point, not a slower one
+            ref = start + 0.3 * (time.monotonic() - t0)
             cf.commander.send_full_state_setpoint(
                 [ref + 0.015, 1.0, 0.5],
                 [0.3, 0.0, 0.0],
@@ -238,7 +240,6 @@ def test_mellinger_tracks_a_one_step_ahead_position_slowly_and_a_full_state_refe
                 0,
                 0,
             )
-            ref += 0.03
             time.sleep(0.1)
             samples.append((time.monotonic(), float(d.pos[0])))
         (ta, xa), (tb, xb) = samples[10], samples[-1]
