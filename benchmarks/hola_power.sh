@@ -25,12 +25,13 @@ tree=${HOLA_POWER_TREE:-$main/../hola_tree}
 [ "$(git -C "$tree" rev-parse --short=7 HEAD)" = 9f2ab7f ] || { echo "$tree is not at 9f2ab7f" >&2; exit 2; }
 mkdir -p reports benchmarks/results/hola_power
 for p in .venv reports benchmarks/results/hola_power; do [ -e "$tree/$p" ] || ln -s "$main/$p" "$tree/$p"; done
+# the study's arguments to hola_report.py, shared by its runs (pinned tree) and its report (this checkout)
+study_args=(--tasks 4p2e5o --algorithms hola hola_no_g sp fcp --episodes 2000 --zoos zoo1 zoo2 zoo3 zoo4
+  --title "HOLA-Drone V2 with the power to decide (issue 22)" --out reports/hola_power
+  --results benchmarks/results/hola_power)
 study() {  # hola_report.py of the pinned tree, with this study's arguments and any given
-  (cd "$tree" && PYTHONPATH=$tree .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o \
-    --algorithms hola hola_no_g sp fcp --fcp-seeds 2 --fcp-levels 2 \
-    --episodes 2000 --ppo-epochs 2 --zoos zoo1 zoo2 zoo3 zoo4 \
-    --references sp hola_no_g --title "HOLA-Drone V2 with the power to decide (issue 22)" \
-    --out reports/hola_power --results benchmarks/results/hola_power --resume "$@")
+  (cd "$tree" && PYTHONPATH=$tree .venv/bin/python benchmarks/hola_report.py "${study_args[@]}" \
+    --fcp-seeds 2 --fcp-levels 2 --ppo-epochs 2 --references sp hola_no_g --resume "$@")
 }
 archive() {  # the finished runs and evaluations into the committed archive (reports/ may not survive a session)
   PYTHONPATH=$main .venv/bin/python benchmarks/hola_archive.py "$1" --out reports/hola_power \
@@ -49,7 +50,5 @@ done
 for seed in 0 1 2 3 4 5 6 7; do study --seeds "$seed" --phases evaluate; archive save; done
 # the report with this checkout's code (it only reads the runs and evaluations): rho against its nulls, paired
 # differences against SP, SP at HOLA's learner samples, w/o g and the Pi_0-only FCP
-PYTHONPATH=$main .venv/bin/python benchmarks/hola_report.py --tasks 4p2e5o --algorithms hola hola_no_g sp fcp \
-  --episodes 2000 --zoos zoo1 zoo2 zoo3 zoo4 --references sp sp@samples hola_no_g fcp \
-  --title "HOLA-Drone V2 with the power to decide (issue 22)" --out reports/hola_power \
-  --results benchmarks/results/hola_power --seeds 0 1 2 3 4 5 6 7 --phases report
+PYTHONPATH=$main .venv/bin/python benchmarks/hola_report.py "${study_args[@]}" \
+  --references sp sp@samples hola_no_g fcp --seeds 0 1 2 3 4 5 6 7 --phases report

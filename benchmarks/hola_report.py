@@ -296,17 +296,16 @@ def noise_null(graph: dict[str, Any], temperature: float, seed: int, trials: int
     se = np.array([e[f"{key}_se"] for e in edges], dtype=np.float64)
     partners = len(teams[0]) - sum(m in graph["learners"] for m in teams[0])
     rng = np.random.default_rng(seed)
-    entropies, largest = [], []
-    for _ in range(trials):
+
+    def rho() -> dict[str, float]:
         drawn = dict(zip(teams, (w.mean() + se * rng.standard_normal(len(w))).tolist(), strict=True))
-        shares = hg.member_shares(hg.softmin_profiles(drawn, graph["learners"], temperature))
-        rho = {m: shares.get(m, 0.0) / partners for m in graph["rho"]}
-        entropies.append(hg.distribution_entropy(rho))
-        largest.append(max(rho.values()))
+        return hg.softmin_rho(drawn, graph["learners"], graph["rho"], partners, temperature)[0]
+
+    stats = hg.rho_statistics(rho() for _ in range(trials))
     low = np.argsort(w)[:2]
     diff, sd = float(w[low[1]] - w[low[0]]), float(np.hypot(se[low[0]], se[low[1]]))
     gap = diff / sd if sd > 0 else (math.inf if diff > 0 else 0.0)
-    return {"noise_entropy": float(np.mean(entropies)), "noise_max_rho": float(np.mean(largest)), "gap_z": gap}
+    return {"noise_entropy": stats["entropy"], "noise_max_rho": stats["max_rho"], "gap_z": gap}
 
 
 def pi0_members(generations: Path) -> tuple[set[str], set[str]] | None:

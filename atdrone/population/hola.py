@@ -232,9 +232,7 @@ class Hola(Algorithm):
                 else hg.partner_distribution(self._smoothed(weights, others, ties), others)
             )
             return rho, hg.profile_distribution(rho, num_partners)
-        draws = hg.softmin_profiles(weights, self.learners, cfg.temperature)
-        shares = hg.member_shares(draws)
-        return {m: shares.get(m, 0.0) / num_partners for m in others}, draws
+        return hg.softmin_rho(weights, self.learners, others, num_partners, cfg.temperature)
 
     def _pi0(self, oracle: Oracle) -> GenerationReport:
         """Pi_0: pi0_seeds self-play runs, each frozen at pi0_levels skill levels; N_0: the first seeds' finals."""

@@ -223,6 +223,35 @@ def softmin_profiles(weights: dict[Team, float], learners: Sequence[str], temper
     return {p: v / total for p, v in out.items()}
 
 
+def softmin_rho(
+    weights: dict[Team, float],
+    learners: Sequence[str],
+    candidates: Iterable[str],
+    num_partners: int,
+    temperature: float,
+) -> tuple[dict[str, float], dict[Team, float]]:
+    """rho over ``candidates`` under the softmin (each member's share of the ``num_partners`` partner slots
+    of :func:`softmin_profiles`), and those profiles."""
+    draws = softmin_profiles(weights, learners, temperature)
+    shares = member_shares(draws)
+    return {m: shares.get(m, 0.0) / num_partners for m in candidates}, draws
+
+
+def rho_statistics(rhos: Iterable[dict[str, float]]) -> dict[str, float]:
+    """Over draws of rho: the mean and standard deviation (ddof 1) of its entropy, the mean of its largest
+    value, and the number of draws."""
+    entropies, largest = [], []
+    for rho in rhos:
+        entropies.append(distribution_entropy(rho))
+        largest.append(max(rho.values()))
+    return {
+        "entropy": float(np.mean(entropies)),
+        "entropy_sd": float(np.std(entropies, ddof=1)) if len(entropies) > 1 else 0.0,
+        "max_rho": float(np.mean(largest)),
+        "trials": float(len(entropies)),
+    }
+
+
 def null_rho(
     weights: dict[Team, float],
     rho_of: Callable[[dict[Team, float]], dict[str, float]],
@@ -232,24 +261,13 @@ def null_rho(
     """What the min step gives with no signal: ``rho_of`` the measured weights permuted at random
     over the same hyperedges (the same design and scale, no link between a team and its outcome).
 
-    Returns the mean and standard deviation over ``trials`` of rho's entropy, and the mean
-    of its largest value: the baseline a measured rho must differ from before it can be
-    said to have found a preference (at generation 1 the in-degrees are largely fixed by
-    the design, whatever the weights).
+    Returns :func:`rho_statistics` over ``trials`` permutations: the baseline a measured rho must
+    differ from before it can be said to have found a preference (at generation 1 the in-degrees
+    are largely fixed by the design, whatever the weights).
     """
     check_finite(weights)
     keys, values = list(weights), np.array(list(weights.values()), dtype=np.float64)
-    entropies, largest = [], []
-    for _ in range(trials):
-        rho = rho_of(dict(zip(keys, rng.permutation(values).tolist(), strict=True)))
-        entropies.append(distribution_entropy(rho))
-        largest.append(max(rho.values()))
-    return {
-        "entropy": float(np.mean(entropies)),
-        "entropy_sd": float(np.std(entropies, ddof=1)) if trials > 1 else 0.0,
-        "max_rho": float(np.mean(largest)),
-        "trials": float(trials),
-    }
+    return rho_statistics(rho_of(dict(zip(keys, rng.permutation(values).tolist(), strict=True))) for _ in range(trials))
 
 
 def _unique(candidates: Iterable[str]) -> list[str]:
