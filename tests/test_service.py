@@ -539,13 +539,16 @@ def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path
 def test_a_drivers_runs_share_one_learner_that_trains_as_a_new_one_would(
     local_ray, tmp_path, monkeypatch, mlflow_store
 ):
-    """The driver's learner pool: a second run in the same process trains on the first run's learner actor (no
-    new process), and every member it trains has the weights of the first run's (on a new learner), bit for bit.
-    A learner that died while idle is not handed out again."""
+    """The driver's pools: a second run in the same process trains on the first run's learner actor and is run
+    by its coordinator (no new process), and every member it trains has the weights of the first run's (on a
+    new learner and coordinator), bit for bit. A coordinator handed back holds no CPU (its rollout workers
+    ended). A learner that died while idle is not handed out again."""
     from atdrone.service import pool
 
-    fresh = pool.LearnerPool()
+    fresh = pool.ActorPool(pool.make_learner)
+    coordinators = pool.ActorPool(pool.make_coordinator)
     monkeypatch.setattr(pool, "LEARNERS", fresh)
+    monkeypatch.setattr(pool, "COORDINATORS", coordinators)
     uri = mlflow_store(tmp_path / "mlflow.db")
     kw = {"algorithm": "sp", "generations": 1, "updates_per_generation": 2, "final_zoo": "", "num_workers": 1}
     weights = {}
@@ -554,6 +557,11 @@ def test_a_drivers_runs_share_one_learner_that_trains_as_a_new_one_would(
         members = sorted((tmp_path / name / "members").glob("*.pt"))
         weights[name] = {p.name: load_checkpoint(p)[0].state_dict() for p in members}
         assert fresh.created == 1 and fresh.idle() == 1  # the second run started no learner
+        assert coordinators.created == 1 and coordinators.idle() == 1  # nor a coordinator
+        deadline = time.monotonic() + 30  # its worker's kill lands asynchronously
+        while ray.available_resources().get("CPU", 0.0) < ray.cluster_resources()["CPU"]:
+            assert time.monotonic() < deadline, "the idle coordinator's rollout worker still holds its CPU"
+            time.sleep(0.05)
     assert list(weights["pool_a"]) == list(weights["pool_b"]) == ["sp-g0-0.pt"]
     for member, state in weights["pool_a"].items():
         other = weights["pool_b"][member]

@@ -54,9 +54,23 @@ def derive_seed(*parts: int) -> int:
 
 @ray.remote(num_cpus=0, max_restarts=0)
 class Coordinator:
-    """Owns the rollout workers and learners of one experiment run; runs its algorithm's generations."""
+    """Owns the rollout workers and learners of one experiment run; runs its algorithm's generations.
 
-    def __init__(
+    Made with a run's arguments it starts that run; made with none it waits for :meth:`start`. One
+    coordinator serves one run after another (:mod:`atdrone.service.pool`): :meth:`release` ends a
+    run's workers, :meth:`start` sets up the next as a new coordinator would; the learners it made
+    are kept for the next run.
+    """
+
+    def __init__(self, *run: Any) -> None:
+        self.workers: list[Any] = []
+        self._own_learners: list[Any] = []  # learner actors this coordinator made (kept between runs)
+        self._own_gpus = 0.0
+        self._idle_learners: list[Any] = []
+        if run:
+            self.start(*run)
+
+    def start(
         self,
         cfg: ExperimentConfig,
         algorithm: type[Algorithm],
@@ -65,7 +79,11 @@ class Coordinator:
         registry: Any = None,
         learners: Sequence[Any] = (),
     ) -> None:
-        """``learners``: idle learner actors to train with first (the driver's pool); more are made as needed."""
+        """Set up a run: what a new coordinator made with these arguments would hold.
+
+        ``learners``: idle learner actors to train with first (the driver's pool); more are made as needed."""
+        if self.workers:
+            raise RuntimeError("the coordinator is running a run: release it first")
         self.cfg = cfg
         self.run = cfg.name
         self.run_dir = Path(run_dir)
@@ -88,11 +106,32 @@ class Coordinator:
         if "algorithm" in state:
             self.algorithm.load_state(state["algorithm"])
         self.zoo_specs: dict[str, MemberSpec] = {}
-        self._idle_learners: list[Any] = list(learners)  # learner actors between trainings (one process, many learners)
+        if self._own_gpus != cfg.learner_gpus:  # learners asking other GPUs than this run's
+            for learner in self._own_learners:
+                ray.kill(learner)
+            self._own_learners, self._own_gpus = [], cfg.learner_gpus
+        # learner actors between trainings (one process, many learners): the driver's, then this coordinator's
+        self._idle_learners = [*learners, *self._own_learners]
         self._begin(self.generation)
 
+    def release(self) -> None:
+        """End the run: its rollout workers ended (their CPUs free), its learners emptied and kept for the next
+        :meth:`start`, its registry handle dropped."""
+        for worker in self.workers:
+            ray.kill(worker)
+        self.workers = []
+        ray.get([learner.release.remote() for learner in self._own_learners])
+        self._idle_learners = []
+        self.registry = None
+
+    def ping(self) -> bool:
+        """True: the actor answers."""
+        return True
+
     def _new_learner(self) -> Any:
-        return LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote()
+        learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote()
+        self._own_learners.append(learner)
+        return learner
 
     def _begin(self, generation: int) -> None:
         """Counters and the generator of a generation, all derived from (seed, generation)."""

@@ -176,8 +176,7 @@ def _run(
 
     from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
-    from atdrone.service.coordinator import Coordinator
-    from atdrone.service.pool import LEARNERS
+    from atdrone.service.pool import COORDINATORS, LEARNERS
 
     run_dir = Path(cfg.out_dir).resolve() / cfg.name
     state_path = run_dir / STATE_FILE
@@ -206,15 +205,22 @@ def _run(
     registry = registry_actor(db, name=registry_name(cfg.name), node=ray.get_runtime_context().get_node_id())
     start = saved.get("coordinator", {}).get("generation", 0)
     ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
-    # the run's first learner comes from this process's pool and goes back to it: the next run needs no new one
+    # the run's coordinator and first learner come from this process's pools and go back to them: the next run
+    # starts neither process again
     learner = LEARNERS.take(cfg.learner_gpus)
-    coordinator = Coordinator.options(max_concurrency=2).remote(  # the 2nd thread answers progress()
-        cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry, [learner]
-    )
+    coordinator = COORDINATORS.take()
+    ended = False
     try:
+        ray.get(
+            coordinator.start.remote(
+                cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry, [learner]
+            )
+        )
         summary = _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
-    finally:  # the run's other actors end with it; the registry's name is free for the next run
-        _release(coordinator, registry, registry_name(cfg.name))
+        ended = True
+    finally:  # a run that failed ends its coordinator (and its workers); the registry's name is free for the next run
+        _release(coordinator, registry, registry_name(cfg.name), ended)
+    COORDINATORS.give_back([coordinator])  # its rollout workers end, their CPUs free
     LEARNERS.give_back([learner], cfg.learner_gpus)  # a run that failed drops it (Ray ends it with the handle)
     return summary
 
@@ -349,13 +355,15 @@ def _await_generation(coordinator: Any, name: str, g: int, progress: bool, every
             last, shown = line, time.monotonic()
 
 
-def _release(coordinator: Any, registry: Any, name: str, timeout_s: float = 30.0) -> None:
-    """Kill the run's coordinator (and with it its workers) and registry actor; wait for the name to be free."""
+def _release(coordinator: Any, registry: Any, name: str, keep: bool, timeout_s: float = 30.0) -> None:
+    """Kill the run's registry actor, and its coordinator (with it its workers) unless ``keep`` (a run that ended
+    well: the pool takes it back); wait for the registry's name to be free."""
     import ray
 
     from atdrone.registry import REGISTRY_NAMESPACE
 
-    ray.kill(coordinator)
+    if not keep:
+        ray.kill(coordinator)
     ray.kill(registry, no_restart=True)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
