@@ -536,37 +536,38 @@ def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path
     assert champion.tags["score_metric"] == "validation_SUC" and float(champion.tags["score"]) == score
 
 
-def test_a_drivers_runs_share_one_learner_that_trains_as_a_new_one_would(
+def test_a_drivers_runs_share_one_coordinator_and_learner_that_run_as_new_ones_would(
     local_ray, tmp_path, monkeypatch, mlflow_store
 ):
-    """The driver's pools: a second run in the same process trains on the first run's learner actor and is run
-    by its coordinator (no new process), and every member it trains has the weights of the first run's (on a
-    new learner and coordinator), bit for bit. A coordinator handed back holds no CPU (its rollout workers
-    ended). A learner that died while idle is not handed out again."""
+    """The driver's pool: a second run in the same process is run by the first run's coordinator and trains on
+    its learner actor (no new process), and every member it trains has the weights of the first run's (on a
+    new coordinator and learner), bit for bit. A coordinator handed back holds no CPU (its rollout workers
+    ended). A learner that died while idle is not used again."""
     from atdrone.service import pool
 
-    fresh = pool.ActorPool(pool.make_learner)
     coordinators = pool.ActorPool(pool.make_coordinator)
-    monkeypatch.setattr(pool, "LEARNERS", fresh)
     monkeypatch.setattr(pool, "COORDINATORS", coordinators)
     uri = mlflow_store(tmp_path / "mlflow.db")
     kw = {"algorithm": "sp", "generations": 1, "updates_per_generation": 2, "final_zoo": "", "num_workers": 1}
-    weights = {}
+    weights, learners = {}, []
     for name in ("pool_a", "pool_b"):
         run_experiment(_cfg(tmp_path, name, **kw), tracking_uri=uri, progress=False)
         members = sorted((tmp_path / name / "members").glob("*.pt"))
         weights[name] = {p.name: load_checkpoint(p)[0].state_dict() for p in members}
-        assert fresh.created == 1 and fresh.idle() == 1  # the second run started no learner
-        assert coordinators.created == 1 and coordinators.idle() == 1  # nor a coordinator
+        assert coordinators.created == 1 and coordinators.idle() == 1  # the second run started no coordinator
+        coordinator = coordinators.take()
+        learners.append(ray.get(coordinator.learners.remote()))
+        coordinators.give_back([coordinator])
         deadline = time.monotonic() + 30  # its worker's kill lands asynchronously
         while ray.available_resources().get("CPU", 0.0) < ray.cluster_resources()["CPU"]:
             assert time.monotonic() < deadline, "the idle coordinator's rollout worker still holds its CPU"
             time.sleep(0.05)
+    assert len(learners[0]) == 1 and learners[1] == learners[0]  # nor a learner
     assert list(weights["pool_a"]) == list(weights["pool_b"]) == ["sp-g0-0.pt"]
     for member, state in weights["pool_a"].items():
         other = weights["pool_b"][member]
         assert all(torch.equal(state[k], other[k]) for k in state), member
-    learner = fresh.take()
+    (learner,) = learners[0]
     ray.kill(learner)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:  # the kill lands asynchronously: a call may still be answered first
@@ -575,7 +576,8 @@ def test_a_drivers_runs_share_one_learner_that_trains_as_a_new_one_would(
         except ray.exceptions.RayActorError:
             break
         time.sleep(0.05)
-    fresh.give_back([learner])
-    assert fresh.idle() == 0
-    fresh.take()
-    assert fresh.created == 2
+    coordinator = coordinators.take()
+    ray.get(coordinator.start.remote(_cfg(tmp_path, "pool_c", **kw), ALGORITHMS["sp"], str(tmp_path), None, "registry"))
+    assert ray.get(coordinator.learners.remote()) == []  # the dead learner dropped: the next training makes one
+    coordinators.give_back([coordinator])
+    assert coordinators.idle() == 1

@@ -52,6 +52,15 @@ def derive_seed(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0] % 2**31)
 
 
+def _answers(method: Any, timeout_s: float = 10.0) -> bool:
+    """Whether an actor's ``method`` (no arguments) returns within ``timeout_s`` (False: the actor died or hangs)."""
+    try:
+        ray.get(method.remote(), timeout=timeout_s)
+    except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError):
+        return False
+    return True
+
+
 @ray.remote(num_cpus=0, max_restarts=0)
 class Coordinator:
     """Owns the rollout workers and learners of one experiment run; runs its algorithm's generations.
@@ -64,7 +73,7 @@ class Coordinator:
 
     def __init__(self, *run: Any) -> None:
         self.workers: list[Any] = []
-        self._own_learners: list[Any] = []  # learner actors this coordinator made (kept between runs)
+        self._own_learners: list[Any] = []  # the learner actors this coordinator made (kept between runs)
         self._own_gpus = 0.0
         self._idle_learners: list[Any] = []
         if run:
@@ -77,11 +86,9 @@ class Coordinator:
         run_dir: str,
         state: Mapping[str, Any] | None = None,
         registry: Any = None,
-        learners: Sequence[Any] = (),
     ) -> None:
-        """Set up a run: what a new coordinator made with these arguments would hold.
-
-        ``learners``: idle learner actors to train with first (the driver's pool); more are made as needed."""
+        """Set up a run: what a new coordinator made with these arguments would hold (the learners it made for
+        earlier runs are reused: reset, they hold what new ones would)."""
         if self.workers:
             raise RuntimeError("the coordinator is running a run: release it first")
         self.cfg = cfg
@@ -110,8 +117,9 @@ class Coordinator:
             for learner in self._own_learners:
                 ray.kill(learner)
             self._own_learners, self._own_gpus = [], cfg.learner_gpus
-        # learner actors between trainings (one process, many learners): the driver's, then this coordinator's
-        self._idle_learners = [*learners, *self._own_learners]
+        self._own_learners = [learner for learner in self._own_learners if _answers(learner.ping)]
+        # learner actors between trainings (one process, many learners), made when first needed
+        self._idle_learners = list(self._own_learners)
         self._begin(self.generation)
 
     def release(self) -> None:
@@ -120,13 +128,18 @@ class Coordinator:
         for worker in self.workers:
             ray.kill(worker)
         self.workers = []
-        ray.get([learner.release.remote() for learner in self._own_learners])
+        # their models and optimisers freed; one that died is dropped
+        self._own_learners = [learner for learner in self._own_learners if _answers(learner.release)]
         self._idle_learners = []
         self.registry = None
 
     def ping(self) -> bool:
         """True: the actor answers."""
         return True
+
+    def learners(self) -> list[Any]:
+        """The learner actors this coordinator made (kept between runs)."""
+        return list(self._own_learners)
 
     def _new_learner(self) -> Any:
         learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote()

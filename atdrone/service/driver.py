@@ -176,7 +176,7 @@ def _run(
 
     from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
-    from atdrone.service.pool import COORDINATORS, LEARNERS
+    from atdrone.service.pool import COORDINATORS
 
     run_dir = Path(cfg.out_dir).resolve() / cfg.name
     state_path = run_dir / STATE_FILE
@@ -205,23 +205,18 @@ def _run(
     registry = registry_actor(db, name=registry_name(cfg.name), node=ray.get_runtime_context().get_node_id())
     start = saved.get("coordinator", {}).get("generation", 0)
     ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
-    # the run's coordinator and first learner come from this process's pools and go back to them: the next run
-    # starts neither process again
-    learner = LEARNERS.take(cfg.learner_gpus)
+    # the run's coordinator (with the learners it made) comes from this process's pool and goes back to it: the
+    # next run starts neither process again
     coordinator = COORDINATORS.take()
     ended = False
     try:
-        ray.get(
-            coordinator.start.remote(
-                cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry, [learner]
-            )
-        )
+        run = (cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry)
+        ray.get(coordinator.start.remote(*run))
         summary = _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
         ended = True
     finally:  # a run that failed ends its coordinator (and its workers); the registry's name is free for the next run
         _release(coordinator, registry, registry_name(cfg.name), ended)
     COORDINATORS.give_back([coordinator])  # its rollout workers end, their CPUs free
-    LEARNERS.give_back([learner], cfg.learner_gpus)  # a run that failed drops it (Ray ends it with the handle)
     return summary
 
 
