@@ -287,6 +287,7 @@ def test_the_coordinator_reports_what_a_generation_is_doing(local_ray, tmp_path)
         if line and (not seen or seen[-1] != line):
             seen.append(line)
     ray.get(ref)
+    ray.get(coordinator.release.remote())  # its workers' CPUs (a placement group it made) freed
     ray.kill(coordinator)
     ray.kill(registry)
     assert {"train: learner 2, update 2/3", "train: learner 2, update 3/3"} & set(seen), seen

@@ -195,6 +195,7 @@ def test_hola_trains_on_partner_profiles_drawn_from_rho(local_ray, tmp_path):
     coordinator = Coordinator.remote(cfg, ALGORITHMS["hola"], str(tmp_path / "draws_t"), None, registry)
     first = ray.get(coordinator.run_generation.remote(), timeout=240)
     report = ray.get(coordinator.run_generation.remote(), timeout=240)
+    ray.get(coordinator.release.remote())  # its workers' CPUs (a placement group it made) freed
     ray.kill(coordinator)
     seed0, seed1, seed2, seed3 = first.population
     assert [t.parent for t in first.training] == [None] * 4
@@ -255,6 +256,8 @@ def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp
     new_pids = ray.get(coordinator.worker_pids.remote())
     assert new_pids[0] != pids[0] and new_pids[1] == pids[1]  # worker 0 restarted, worker 1 untouched
     assert ray.get(probe, timeout=60) == new_pids[0]  # the old process was busy from the probe to the kill
+    ray.get(coordinator.release.remote())  # its workers' CPUs (a placement group it made) freed
+    assert ray.get(coordinator.kept.remote())["workers"] == [workers[1]]  # a restarted worker is not kept
     ray.kill(coordinator)
     (trained,) = report.training
     # the learner's update count is complete, each update on both workers' fragments: every worker's
@@ -286,6 +289,7 @@ def test_the_coordinator_skips_a_zoo_evaluation_whose_checkpoint_is_missing(loca
         with pytest.raises(ray.exceptions.RayTaskError, match="no checkpoint file"):
             ray.get(coordinator.evaluate_population.remote("zoo1", 4, members=["sp-g0-0"]))
     finally:
+        ray.get(coordinator.release.remote())  # its workers' CPUs (a placement group it made) freed
         ray.kill(coordinator)
 
 
@@ -539,35 +543,36 @@ def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path
 def test_a_drivers_runs_share_one_coordinator_and_learner_that_run_as_new_ones_would(
     local_ray, tmp_path, monkeypatch, mlflow_store
 ):
-    """The driver's pool: a second run in the same process is run by the first run's coordinator and trains on
-    its learner actor (no new process), and every member it trains has the weights of the first run's (on a
-    new coordinator and learner), bit for bit. A coordinator handed back holds no CPU (its rollout workers
-    ended). A learner that died while idle is not used again."""
+    """The driver's pool: a second run in the same process is run by the first run's coordinator, trains on
+    its learner actor and collects on its rollout worker (no new process), and every member it trains has the
+    weights of the first run's (on new ones), bit for bit. A coordinator handed back, and the rollout worker it
+    keeps, hold no CPU. A learner that died while idle is not used again."""
     from atdrone.service import pool
 
     coordinators = pool.ActorPool(pool.make_coordinator)
     monkeypatch.setattr(pool, "COORDINATORS", coordinators)
     uri = mlflow_store(tmp_path / "mlflow.db")
     kw = {"algorithm": "sp", "generations": 1, "updates_per_generation": 2, "final_zoo": "", "num_workers": 1}
-    weights, learners = {}, []
+    weights, kept = {}, []
     for name in ("pool_a", "pool_b"):
         run_experiment(_cfg(tmp_path, name, **kw), tracking_uri=uri, progress=False)
         members = sorted((tmp_path / name / "members").glob("*.pt"))
         weights[name] = {p.name: load_checkpoint(p)[0].state_dict() for p in members}
         assert coordinators.created == 1 and coordinators.idle() == 1  # the second run started no coordinator
-        coordinator = coordinators.take()
-        learners.append(ray.get(coordinator.learners.remote()))
-        coordinators.give_back([coordinator])
-        deadline = time.monotonic() + 30  # its worker's kill lands asynchronously
-        while ray.available_resources().get("CPU", 0.0) < ray.cluster_resources()["CPU"]:
+        deadline = time.monotonic() + 30  # the idle coordinator and its idle rollout worker hold no CPU (the run's
+        while ray.available_resources().get("CPU", 0.0) < ray.cluster_resources()["CPU"]:  # placement group freed)
             assert time.monotonic() < deadline, "the idle coordinator's rollout worker still holds its CPU"
             time.sleep(0.05)
-    assert len(learners[0]) == 1 and learners[1] == learners[0]  # nor a learner
+        coordinator = coordinators.take()
+        kept.append(ray.get(coordinator.kept.remote()))
+        coordinators.give_back([coordinator])
+    assert len(kept[0]["learners"]) == len(kept[0]["workers"]) == 1
+    assert kept[1] == kept[0]  # nor a learner, nor a rollout worker
     assert list(weights["pool_a"]) == list(weights["pool_b"]) == ["sp-g0-0.pt"]
     for member, state in weights["pool_a"].items():
         other = weights["pool_b"][member]
         assert all(torch.equal(state[k], other[k]) for k in state), member
-    (learner,) = learners[0]
+    (learner,) = kept[0]["learners"]
     ray.kill(learner)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:  # the kill lands asynchronously: a call may still be answered first
@@ -578,6 +583,6 @@ def test_a_drivers_runs_share_one_coordinator_and_learner_that_run_as_new_ones_w
         time.sleep(0.05)
     coordinator = coordinators.take()
     ray.get(coordinator.start.remote(_cfg(tmp_path, "pool_c", **kw), ALGORITHMS["sp"], str(tmp_path), None, "registry"))
-    assert ray.get(coordinator.learners.remote()) == []  # the dead learner dropped: the next training makes one
+    assert ray.get(coordinator.kept.remote())["learners"] == []  # the dead learner dropped: the next training makes one
     coordinators.give_back([coordinator])
     assert coordinators.idle() == 1

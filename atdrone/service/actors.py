@@ -66,17 +66,31 @@ class RolloutJob:
 WORKER_RESTARTS = 8  # restarts of one rollout worker in a run, and retries of one call, before the run fails
 
 
-@ray.remote(num_cpus=1, max_restarts=WORKER_RESTARTS, max_task_retries=WORKER_RESTARTS)
+@ray.remote(num_cpus=0, max_restarts=WORKER_RESTARTS, max_task_retries=WORKER_RESTARTS)
 class RolloutWorkerActor:
-    """Collects fragments for one training job at a time, and plays evaluation matches."""
+    """Collects fragments for one training job at a time, and plays evaluation matches, on its task.
+
+    It asks Ray for no CPU itself: the coordinator reserves one per worker for the run (a placement
+    group bundle) and places the worker on that bundle's node, so a worker kept idle between runs
+    holds no CPU. A restarted worker is made with the task it was first made with: a worker serves
+    one task for life."""
 
     def __init__(self, task: TaskConfig) -> None:
         torch.set_num_threads(1)
         self.task = task
+        self.release()
+
+    def release(self) -> tuple[int, str]:
+        """Drop the run's job, environments and partner policies (what a new worker holds); (pid, node id)."""
         self.policies = PolicyCache()
         self.worker: RolloutWorker | None = None
         self.job: RolloutJob | None = None
         self.done = 0  # fragments of the job collected by this process
+        return self.identity()
+
+    def identity(self) -> tuple[int, str]:
+        """(pid, node id): a restart changes the pid."""
+        return os.getpid(), ray.get_runtime_context().get_node_id()
 
     def pid(self) -> int:
         return os.getpid()

@@ -4,10 +4,10 @@ The algorithm (a class of :data:`atdrone.population.ALGORITHMS`) decides what a
 generation does; the coordinator does it (:class:`atdrone.population.base.Oracle`):
 
 - ``evaluate(teams)``: play each team on the rollout workers and record the matches;
-- ``train(start_from, partners, hparams)``: a learner (an idle learner actor, the
-  driver's to begin with, reset to the new spec) from a member's weights, updated ``updates_per_generation`` times on
-  fragments the workers collect with partners drawn from ``partners`` per environment
-  and per episode;
+- ``train(start_from, partners, hparams)``: a learner (an idle learner actor of this
+  coordinator's, reset to the new spec, else a new one) from a member's weights, updated
+  ``updates_per_generation`` times on fragments the workers collect with partners drawn
+  from ``partners`` per environment and per episode;
 - ``register(trained, parents)``: the learner's checkpoint and registry row (the learner
   actor goes back to the pool);
 - ``retire(members)``.
@@ -31,8 +31,10 @@ from typing import Any
 
 import numpy as np
 import ray
+from ray.util.placement_group import PlacementGroup, placement_group, placement_group_table, remove_placement_group
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from atdrone.config import load_task
+from atdrone.config import TaskConfig, load_task
 from atdrone.learn.learner import LearnerSpec
 from atdrone.learn.ppo import ppo_config
 from atdrone.models.checkpoint import load_checkpoint
@@ -52,6 +54,12 @@ def derive_seed(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0] % 2**31)
 
 
+def reserve_cpus(num_workers: int) -> PlacementGroup:
+    """One CPU for each of a run's rollout workers, as a placement group (packed onto as few nodes as hold it):
+    held for the run by whoever made it, freed with ``remove_placement_group``."""
+    return placement_group([{"CPU": 1.0}] * num_workers, strategy="PACK")
+
+
 def _answers(method: Any, timeout_s: float = 10.0) -> bool:
     """Whether an actor's ``method`` (no arguments) returns within ``timeout_s`` (False: the actor died or hangs)."""
     try:
@@ -67,12 +75,16 @@ class Coordinator:
 
     Made with a run's arguments it starts that run; made with none it waits for :meth:`start`. One
     coordinator serves one run after another (:mod:`atdrone.service.pool`): :meth:`release` ends a
-    run's workers, :meth:`start` sets up the next as a new coordinator would; the learners it made
-    are kept for the next run.
+    run (its CPUs freed when it reserved them), :meth:`start` sets up the next as a new coordinator
+    would; the learners and rollout workers it made are kept, emptied, for the next run.
     """
 
     def __init__(self, *run: Any) -> None:
         self.workers: list[Any] = []
+        self.cpus: PlacementGroup | None = None  # the run's CPUs, one bundle per rollout worker
+        self._own_cpus = False  # made by this coordinator (freed at release), else by the caller
+        self._idle_workers: list[tuple[Any, TaskConfig, str]] = []  # (worker, its task, its node) between runs
+        self._pids: list[int] = []  # the run's workers' pids when it began
         self._own_learners: list[Any] = []  # the learner actors this coordinator made (kept between runs)
         self._own_gpus = 0.0
         self._idle_learners: list[Any] = []
@@ -86,9 +98,14 @@ class Coordinator:
         run_dir: str,
         state: Mapping[str, Any] | None = None,
         registry: Any = None,
+        cpus: PlacementGroup | None = None,
     ) -> None:
-        """Set up a run: what a new coordinator made with these arguments would hold (the learners it made for
-        earlier runs are reused: reset, they hold what new ones would)."""
+        """Set up a run: what a new coordinator made with these arguments would hold (the learners and rollout
+        workers it made for earlier runs are reused: emptied, they hold what new ones would).
+
+        ``cpus``: the run's CPUs (:func:`reserve_cpus`), reserved and later freed by the caller (the driver:
+        freed even when this coordinator dies); without, the coordinator reserves them and frees them at
+        :meth:`release`."""
         if self.workers:
             raise RuntimeError("the coordinator is running a run: release it first")
         self.cfg = cfg
@@ -102,7 +119,7 @@ class Coordinator:
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl
         self.updates_per_generation = cfg.updates_per_generation
-        self.workers = [RolloutWorkerActor.remote(self.task) for _ in range(cfg.num_workers)]
+        self._reserve(cfg.num_workers, cpus)
         self.algorithm = algorithm(algorithm.parse_config(cfg.section, cfg.algorithm), cfg.seed)
         self.architecture = self.algorithm.architecture(self.ppo, self.task)  # the learners' network
         state = dict(state or {})
@@ -122,12 +139,53 @@ class Coordinator:
         self._idle_learners = list(self._own_learners)
         self._begin(self.generation)
 
+    def _reserve(self, num_workers: int, cpus: PlacementGroup | None) -> None:
+        """The run's rollout workers: one CPU each reserved (``cpus`` or a placement group of its own, waited for
+        as Ray waits to place an actor), each worker on its bundle's node: one kept from an earlier run on that
+        node and task, else a new one."""
+        self._own_cpus = cpus is None
+        self.cpus = reserve_cpus(num_workers) if cpus is None else cpus
+        try:
+            while not self.cpus.wait(timeout_seconds=60):
+                pass
+            nodes = placement_group_table(self.cpus)["bundles_to_node_id"]
+            idle, self._idle_workers = self._idle_workers, []
+            for i in range(num_workers):
+                kept = next((k for k in idle if k[1] == self.task and k[2] == nodes[i]), None)
+                if kept is not None:
+                    idle.remove(kept)
+                    self.workers.append(kept[0])
+                else:
+                    where = NodeAffinitySchedulingStrategy(nodes[i], soft=True)
+                    self.workers.append(RolloutWorkerActor.options(scheduling_strategy=where).remote(self.task))
+            for worker, _, _ in idle:  # not needed by this run: not kept either
+                ray.kill(worker, no_restart=True)
+            self._pids = [pid for pid, _ in ray.get([w.identity.remote() for w in self.workers])]
+        except BaseException:
+            self._end_workers()
+            raise
+
+    def _end_workers(self) -> None:
+        """The run's rollout workers: each one that was never restarted kept (emptied) for the next run, the
+        others ended; the run's CPUs freed."""
+        for i, worker in enumerate(self.workers):
+            try:
+                pid, node = ray.get(worker.release.remote(), timeout=10.0)
+            except ray.exceptions.RayError:
+                pid, node = -1, ""
+            if i < len(self._pids) and pid == self._pids[i]:
+                self._idle_workers.append((worker, self.task, node))
+            else:  # restarted in the run (its restart budget spent in part) or gone
+                ray.kill(worker, no_restart=True)
+        self.workers, self._pids = [], []
+        if self.cpus is not None and self._own_cpus:
+            remove_placement_group(self.cpus)
+        self.cpus = None
+
     def release(self) -> None:
-        """End the run: its rollout workers ended (their CPUs free), its learners emptied and kept for the next
-        :meth:`start`, its registry handle dropped."""
-        for worker in self.workers:
-            ray.kill(worker)
-        self.workers = []
+        """End the run: its rollout workers emptied and kept (their CPUs freed), its learners emptied and kept for
+        the next :meth:`start`, its registry handle dropped."""
+        self._end_workers()
         # their models and optimisers freed; one that died is dropped
         self._own_learners = [learner for learner in self._own_learners if _answers(learner.release)]
         self._idle_learners = []
@@ -137,9 +195,9 @@ class Coordinator:
         """True: the actor answers."""
         return True
 
-    def learners(self) -> list[Any]:
-        """The learner actors this coordinator made (kept between runs)."""
-        return list(self._own_learners)
+    def kept(self) -> dict[str, list[Any]]:
+        """The actors this coordinator keeps between runs: its learners, and its idle rollout workers."""
+        return {"learners": list(self._own_learners), "workers": [w for w, _, _ in self._idle_workers]}
 
     def _new_learner(self) -> Any:
         learner = LearnerActor.options(num_gpus=self.cfg.learner_gpus).remote()

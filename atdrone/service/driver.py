@@ -176,6 +176,7 @@ def _run(
 
     from atdrone.population import ALGORITHMS
     from atdrone.registry import registry_actor
+    from atdrone.service.coordinator import reserve_cpus
     from atdrone.service.pool import COORDINATORS
 
     run_dir = Path(cfg.out_dir).resolve() / cfg.name
@@ -205,18 +206,20 @@ def _run(
     registry = registry_actor(db, name=registry_name(cfg.name), node=ray.get_runtime_context().get_node_id())
     start = saved.get("coordinator", {}).get("generation", 0)
     ray.get(registry.discard_generations.remote(cfg.name, start))  # what an interrupted generation left
-    # the run's coordinator (with the learners it made) comes from this process's pool and goes back to it: the
-    # next run starts neither process again
+    # the run's coordinator (with the learners and rollout workers it made) comes from this process's pool and
+    # goes back to it: the next run starts none of those processes again. The run's CPUs are reserved here, so
+    # they are freed whatever becomes of the coordinator.
     coordinator = COORDINATORS.take()
+    cpus = reserve_cpus(cfg.num_workers)
     ended = False
     try:
-        run = (cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry)
+        run = (cfg, ALGORITHMS[cfg.algorithm], str(run_dir), saved.get("coordinator"), registry, cpus)
         ray.get(coordinator.start.remote(*run))
         summary = _generations(cfg, coordinator, registry, run_dir, saved, tracking_uri, progress, stop_after)
         ended = True
     finally:  # a run that failed ends its coordinator (and its workers); the registry's name is free for the next run
-        _release(coordinator, registry, registry_name(cfg.name), ended)
-    COORDINATORS.give_back([coordinator])  # its rollout workers end, their CPUs free
+        _release(coordinator, registry, registry_name(cfg.name), ended, cpus)
+    COORDINATORS.give_back([coordinator])  # its rollout workers emptied, kept (they hold no CPU)
     return summary
 
 
@@ -350,15 +353,18 @@ def _await_generation(coordinator: Any, name: str, g: int, progress: bool, every
             last, shown = line, time.monotonic()
 
 
-def _release(coordinator: Any, registry: Any, name: str, keep: bool, timeout_s: float = 30.0) -> None:
-    """Kill the run's registry actor, and its coordinator (with it its workers) unless ``keep`` (a run that ended
-    well: the pool takes it back); wait for the registry's name to be free."""
+def _release(coordinator: Any, registry: Any, name: str, keep: bool, cpus: Any, timeout_s: float = 30.0) -> None:
+    """Free the run's CPUs (``cpus``, a placement group); kill the run's registry actor, and its coordinator (with
+    it its workers) unless ``keep`` (a run that ended well: the pool takes it back); wait for the registry's name
+    to be free."""
     import ray
+    from ray.util.placement_group import remove_placement_group
 
     from atdrone.registry import REGISTRY_NAMESPACE
 
     if not keep:
         ray.kill(coordinator)
+    remove_placement_group(cpus)
     ray.kill(registry, no_restart=True)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

@@ -1,15 +1,15 @@
-"""The coordinator kept between the runs of one driver process, with its learners.
+"""The coordinator kept between the runs of one driver process, with its learners and rollout workers.
 
 A coordinator is a process that imports the service, torch and pandas (about 2 CPU-seconds
 to start); each learner actor it makes, a process that imports torch and builds an Adam
 optimiser (which imports ``torch._dynamo``): about 3. Within a run the coordinator reuses
 its learners (:meth:`LearnerActor.reset` with the next spec gives what a new actor would
-hold); this pool carries the coordinator, and with it its learners, over to the driver's
-next run (:meth:`Coordinator.start` sets up a run as a new coordinator would), so a
-process that runs many experiments (``benchmarks/hola_report.py``, a test session, a
-benchmark cell's Ray worker that Ray reuses for the next cell) starts them once, not once
-per run. Rollout workers are not kept: an idle one would keep its CPU from every other run
-of the cluster (a coordinator ends its workers when handed back).
+hold); this pool carries the coordinator, and with it its learners and rollout workers,
+over to the driver's next run (:meth:`Coordinator.start` sets up a run as a new coordinator
+would), so a process that runs many experiments (``benchmarks/hola_report.py``, a test
+session, a benchmark cell's Ray worker that Ray reuses for the next cell) starts them once,
+not once per run. None of them holds a CPU while idle: a run's CPUs are a placement group
+the driver reserves for the run (:func:`~atdrone.service.coordinator.reserve_cpus`).
 
 The driver creates the pooled coordinator, so it belongs to the driver process and outlives
 each run; it ends with the driver's Ray connection. A coordinator handed back is kept only
