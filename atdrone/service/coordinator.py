@@ -119,7 +119,6 @@ class Coordinator:
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl
         self.updates_per_generation = cfg.updates_per_generation
-        self._reserve(cfg.num_workers, cpus)
         self.algorithm = algorithm(algorithm.parse_config(cfg.section, cfg.algorithm), cfg.seed)
         self.architecture = self.algorithm.architecture(self.ppo, self.task)  # the learners' network
         state = dict(state or {})
@@ -137,6 +136,7 @@ class Coordinator:
         self._own_learners = [learner for learner in self._own_learners if _answers(learner.ping)]
         # learner actors between trainings (one process, many learners), made when first needed
         self._idle_learners = list(self._own_learners)
+        self._reserve(cfg.num_workers, cpus)  # last: a run refused above starts no worker
         self._begin(self.generation)
 
     def _reserve(self, num_workers: int, cpus: PlacementGroup | None) -> None:
