@@ -546,10 +546,10 @@ def test_a_drivers_runs_share_one_coordinator_and_learner_that_run_as_new_ones_w
     """The driver's pool: a second run in the same process is run by the first run's coordinator, trains on
     its learner actor and collects on its rollout worker (no new process), and every member it trains has the
     weights of the first run's (on new ones), bit for bit. A coordinator handed back, and the rollout worker it
-    keeps, hold no CPU. A learner that died while idle is not used again."""
+    keeps, hold no CPU. A learner that died while idle is not used again; a kept worker serves only its task."""
     from atdrone.service import pool
 
-    coordinators = pool.ActorPool(pool.make_coordinator)
+    coordinators = pool.CoordinatorPool()
     monkeypatch.setattr(pool, "COORDINATORS", coordinators)
     uri = mlflow_store(tmp_path / "mlflow.db")
     kw = {"algorithm": "sp", "generations": 1, "updates_per_generation": 2, "final_zoo": "", "num_workers": 1}
@@ -586,3 +586,10 @@ def test_a_drivers_runs_share_one_coordinator_and_learner_that_run_as_new_ones_w
     assert ray.get(coordinator.kept.remote())["learners"] == []  # the dead learner dropped: the next training makes one
     coordinators.give_back([coordinator])
     assert coordinators.idle() == 1
+    # a worker serves one task for life (Ray would restart it with its first task): another task gets a new one
+    coordinator = coordinators.take()
+    other = _cfg(tmp_path, "pool_d", **{**kw, "task": "4p2e3o"})
+    ray.get(coordinator.start.remote(other, ALGORITHMS["sp"], str(tmp_path), None, "registry"))
+    coordinators.give_back([coordinator])
+    (worker,) = ray.get(coordinator.kept.remote())["workers"]
+    assert worker not in kept[0]["workers"]

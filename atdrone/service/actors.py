@@ -64,6 +64,17 @@ class RolloutJob:
 
 
 WORKER_RESTARTS = 8  # restarts of one rollout worker in a run, and retries of one call, before the run fails
+ANSWER_TIMEOUT_S = 10.0
+
+
+def answers(method: Any, timeout_s: float = ANSWER_TIMEOUT_S) -> bool:
+    """Whether an actor's ``method`` (no arguments: ``ping``, ``release``) returns within ``timeout_s`` (False: the
+    actor died or hangs)."""
+    try:
+        ray.get(method.remote(), timeout=timeout_s)
+    except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError):
+        return False
+    return True
 
 
 @ray.remote(num_cpus=0, max_restarts=WORKER_RESTARTS, max_task_retries=WORKER_RESTARTS)
@@ -81,15 +92,12 @@ class RolloutWorkerActor:
         self.release()
 
     def release(self) -> tuple[int, str]:
-        """Drop the run's job, environments and partner policies (what a new worker holds); (pid, node id)."""
+        """Drop the run's job, environments and partner policies (what a new worker holds); (pid, node id): a
+        restart changes the pid."""
         self.policies = PolicyCache()
         self.worker: RolloutWorker | None = None
         self.job: RolloutJob | None = None
         self.done = 0  # fragments of the job collected by this process
-        return self.identity()
-
-    def identity(self) -> tuple[int, str]:
-        """(pid, node id): a restart changes the pid."""
         return os.getpid(), ray.get_runtime_context().get_node_id()
 
     def pid(self) -> int:

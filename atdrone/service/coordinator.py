@@ -41,7 +41,14 @@ from atdrone.models.checkpoint import load_checkpoint
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Team, Trained
 from atdrone.registry import find_registry_actor, member_id
-from atdrone.service.actors import LearnerActor, RolloutJob, RolloutWorkerActor, run_updates
+from atdrone.service.actors import (
+    ANSWER_TIMEOUT_S,
+    LearnerActor,
+    RolloutJob,
+    RolloutWorkerActor,
+    answers,
+    run_updates,
+)
 from atdrone.service.experiment import ExperimentConfig, registry_name
 from atdrone.teams.partners import LEARNER_COPY, PartnerDistribution, describe
 
@@ -60,15 +67,6 @@ def reserve_cpus(num_workers: int) -> PlacementGroup:
     return placement_group([{"CPU": 1.0}] * num_workers, strategy="PACK")
 
 
-def _answers(method: Any, timeout_s: float = 10.0) -> bool:
-    """Whether an actor's ``method`` (no arguments) returns within ``timeout_s`` (False: the actor died or hangs)."""
-    try:
-        ray.get(method.remote(), timeout=timeout_s)
-    except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError):
-        return False
-    return True
-
-
 @ray.remote(num_cpus=0, max_restarts=0)
 class Coordinator:
     """Owns the rollout workers and learners of one experiment run; runs its algorithm's generations.
@@ -84,7 +82,7 @@ class Coordinator:
         self.cpus: PlacementGroup | None = None  # the run's CPUs, one bundle per rollout worker
         self._own_cpus = False  # made by this coordinator (freed at release), else by the caller
         self._idle_workers: list[tuple[Any, TaskConfig, str]] = []  # (worker, its task, its node) between runs
-        self._pids: list[int] = []  # the run's workers' pids when it began
+        self._pids: dict[Any, int] = {}  # the run's workers' pids when it began, by worker
         self._own_learners: list[Any] = []  # the learner actors this coordinator made (kept between runs)
         self._own_gpus = 0.0
         self._idle_learners: list[Any] = []
@@ -133,7 +131,7 @@ class Coordinator:
             for learner in self._own_learners:
                 ray.kill(learner)
             self._own_learners, self._own_gpus = [], cfg.learner_gpus
-        self._own_learners = [learner for learner in self._own_learners if _answers(learner.ping)]
+        self._own_learners = [learner for learner in self._own_learners if answers(learner.ping)]
         # learner actors between trainings (one process, many learners), made when first needed
         self._idle_learners = list(self._own_learners)
         self._reserve(cfg.num_workers, cpus)  # last: a run refused above starts no worker
@@ -160,7 +158,7 @@ class Coordinator:
                     self.workers.append(RolloutWorkerActor.options(scheduling_strategy=where).remote(self.task))
             for worker, _, _ in idle:  # not needed by this run: not kept either
                 ray.kill(worker, no_restart=True)
-            self._pids = [pid for pid, _ in ray.get([w.identity.remote() for w in self.workers])]
+            self._pids = dict(zip(self.workers, ray.get([w.pid.remote() for w in self.workers]), strict=True))
         except BaseException:
             self._end_workers()
             raise
@@ -168,16 +166,16 @@ class Coordinator:
     def _end_workers(self) -> None:
         """The run's rollout workers: each one that was never restarted kept (emptied) for the next run, the
         others ended; the run's CPUs freed."""
-        for i, worker in enumerate(self.workers):
+        for worker in self.workers:
             try:
-                pid, node = ray.get(worker.release.remote(), timeout=10.0)
+                pid, node = ray.get(worker.release.remote(), timeout=ANSWER_TIMEOUT_S)
             except ray.exceptions.RayError:
                 pid, node = -1, ""
-            if i < len(self._pids) and pid == self._pids[i]:
+            if pid == self._pids.get(worker):
                 self._idle_workers.append((worker, self.task, node))
-            else:  # restarted in the run (its restart budget spent in part) or gone
+            else:  # restarted in the run (its restart budget spent in part), gone, or never up
                 ray.kill(worker, no_restart=True)
-        self.workers, self._pids = [], []
+        self.workers, self._pids = [], {}
         if self.cpus is not None and self._own_cpus:
             remove_placement_group(self.cpus)
         self.cpus = None
@@ -187,7 +185,7 @@ class Coordinator:
         the next :meth:`start`, its registry handle dropped."""
         self._end_workers()
         # their models and optimisers freed; one that died is dropped
-        self._own_learners = [learner for learner in self._own_learners if _answers(learner.release)]
+        self._own_learners = [learner for learner in self._own_learners if answers(learner.release)]
         self._idle_learners = []
         self.registry = None
 

@@ -19,14 +19,13 @@ while it answers and only for the Ray session it was made in (a handle from an e
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Any
 
 import ray
 
+from atdrone.service.actors import answers
 from atdrone.service.coordinator import Coordinator
-
-PING_TIMEOUT_S = 10.0
 
 
 def _session() -> tuple[str, str]:
@@ -35,17 +34,13 @@ def _session() -> tuple[str, str]:
     return context.get_node_id(), context.get_job_id()
 
 
-class ActorPool:
-    """Idle actors of one kind: :meth:`take` one for a run, :meth:`give_back` after.
+class CoordinatorPool:
+    """Idle coordinators of this process: :meth:`take` one for a run, :meth:`give_back` after."""
 
-    ``make()``: a new actor. A pooled actor answers ``ping()`` and, handed back, ``release()`` (it frees
-    what the run left in it)."""
-
-    def __init__(self, make: Callable[[], Any]) -> None:
-        self._make = make
+    def __init__(self) -> None:
         self._session: tuple[str, str] | None = None
         self._idle: list[Any] = []
-        self.created = 0  # actors this pool made (for tests and logs)
+        self.created = 0  # coordinators this pool made (for tests and logs)
 
     def _current(self) -> list[Any]:
         session = _session()
@@ -54,36 +49,25 @@ class ActorPool:
         return self._idle
 
     def take(self) -> Any:
-        """An idle actor (one that answers), else a new one."""
+        """An idle coordinator (one that answers; a killed or stuck one is left to Ray), else a new one."""
         idle = self._current()
         while idle:
-            actor = idle.pop()
-            try:
-                ray.get(actor.ping.remote(), timeout=PING_TIMEOUT_S)
-            except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError):
-                continue  # killed or stuck: left to Ray
-            return actor
+            coordinator = idle.pop()
+            if answers(coordinator.ping):
+                return coordinator
         self.created += 1
-        return self._make()
+        return Coordinator.options(max_concurrency=2).remote()  # the 2nd thread answers progress()
 
-    def give_back(self, actors: Iterable[Any]) -> None:
-        """Keep ``actors`` for this process's next run (checked when taken again)."""
+    def give_back(self, coordinators: Iterable[Any]) -> None:
+        """Keep ``coordinators`` for this process's next run, each released (what its run left freed; a dead or
+        stuck one is dropped, Ray ends it)."""
         idle = self._current()
-        for actor in actors:
-            try:  # what the run left in it freed while it waits; a dead or stuck one is dropped (Ray ends it)
-                ray.get(actor.release.remote(), timeout=PING_TIMEOUT_S)
-            except (ray.exceptions.RayActorError, ray.exceptions.GetTimeoutError):
-                continue
-            idle.append(actor)
+        idle += [c for c in coordinators if answers(c.release)]
 
     def idle(self) -> int:
-        """How many actors wait for the next run."""
+        """How many coordinators wait for the next run."""
         return len(self._current())
 
 
-def make_coordinator() -> Any:
-    return Coordinator.options(max_concurrency=2).remote()  # the 2nd thread answers progress()
-
-
-COORDINATORS = ActorPool(make_coordinator)
+COORDINATORS = CoordinatorPool()
 """This process's coordinators: the driver takes one for a run and gives it back when the run ends well."""
