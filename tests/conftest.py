@@ -15,8 +15,7 @@ import pytest
 # Under pytest-xdist (`make test` runs `-n 2 --dist loadgroup`): the tests of a module that starts Ray run on
 # one worker (one Ray session per worker, at most two at once, each started as the service starts a local Ray:
 # its own, never another's); the deploy flights (real-time, on UDP) share one worker, so their clocks are not
-# starved by each other (tests/run_suite.py runs them in a session of their own, two at a time at normal
-# priority, beside the CPU-bound rest); everything else is spread over the workers.
+# starved by each other; everything else is spread over the workers.
 _RAY_MODULES = (
     "test_benchmark",
     "test_benchmark_cluster",

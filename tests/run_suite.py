@@ -1,11 +1,10 @@
 """The whole test suite as `make test` runs it: the simulated flights beside everything else.
 
 The deploy flights (tests/test_deploy.py, tests/test_simfleet.py) run in real time on a
-scaled clock and mostly wait for it (about a third of a core, 5 minutes one after another);
-the rest (Ray, training, evaluation) is CPU-bound. So the flights run as their own pytest
-session at normal priority, two at a time on two xdist workers of their own (2 min 43 s,
-half a core), while the rest runs on two xdist workers at ``nice`` +15: the flights get the
-CPU when their clock needs it (their loop is never starved by a Ray test, as it could be on a
+scaled clock and mostly wait for it (about a third of a core); the rest (Ray, training,
+evaluation) is CPU-bound. So the flights run as their own pytest session at normal
+priority while the rest runs on two xdist workers at ``nice`` +15: the flights get the CPU
+when their clock needs it (their loop is never starved by a Ray test, as it could be on a
 shared worker), and the waiting is no longer added to the suite's time. A command given
 with ``--beside`` (``make test``: the type check, half a minute of one core from a fresh
 clone) runs at the same time, at ``nice`` +15 too.
@@ -72,19 +71,7 @@ def main(argv: list[str]) -> int:
 
         start(
             "the simulated flights (tests/test_deploy.py, tests/test_simfleet.py)",
-            [
-                *pytest,
-                "-p",
-                "no:cacheprovider",
-                "-n",
-                "2",
-                "--dist",
-                "load",
-                "--basetemp",
-                str(Path(tmp) / "base"),
-                *FLIGHTS,
-                *args,
-            ],
+            [*pytest, "-p", "no:cacheprovider", "--basetemp", str(Path(tmp) / "base"), *FLIGHTS, *args],
             "flights.log",
             nice=False,
         )

@@ -31,8 +31,7 @@ from atdrone.deploy.shield import geofence
 ROOT = Path(__file__).resolve().parent.parent
 CHECKPOINT = ROOT / "configs" / "zoos" / "checkpoints" / "sp_high.pt"
 RATE = 1.5  # the simulated clock's speed: a host's pause costs the drones 1.5x its length
-# cflib's TOC cache, one per xdist worker (two flights at once never write one file together)
-TOC_CACHE = Path(tempfile.gettempdir()) / f"atdrone-test-toc-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}"
+TOC_CACHE = Path(tempfile.gettempdir()) / "atdrone-test-toc"
 AIRBORNE = ("taking_off", "flying", "landing")
 
 
