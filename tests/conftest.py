@@ -18,7 +18,6 @@ import pytest
 # starved by each other; everything else is spread over the workers.
 _RAY_MODULES = (
     "test_benchmark",
-    "test_benchmark_cluster",
     "test_faults",
     "test_hardening",
     "test_jobs",

@@ -115,18 +115,34 @@ def attempt(spec: dict[str, Any]) -> None:
     driver.run_experiment(cfg, address=spec["address"], resume=True, tracking_uri=spec["uri"], progress=False)
 
 
+# what a driver imports, lazily, in a run: imported once by the server, not in every forked driver
+PRELOAD = (
+    "atdrone.population",
+    "atdrone.service.coordinator",
+    "atdrone.service.driver",
+    "atdrone.tracking",
+    "mlflow.store.model_registry.sqlalchemy_store",
+    "mlflow.store.tracking.sqlalchemy_store",
+    "matplotlib.pyplot",
+    "networkx",
+)
+
+
 def serve() -> None:
     """Import once, then run each spec read from stdin (one JSON line) as a forked driver; print its exit status.
 
-    The fork skips the seconds a fresh interpreter spends importing torch, Ray and MLflow; Ray itself is
-    first initialised in the child (the parent never connects), so nothing of it crosses the fork.
+    The fork skips the seconds a fresh interpreter spends importing torch, Ray, MLflow with its sqlite stores,
+    pyplot and networkx (:data:`PRELOAD`); Ray itself is first initialised in the child (the parent never
+    connects), so nothing of it crosses the fork.
     """
+    import importlib
     import traceback
 
-    import atdrone.population
-    import atdrone.service.coordinator
-    import atdrone.service.driver
-    import atdrone.tracking  # noqa: F401
+    import matplotlib
+
+    matplotlib.use("Agg")  # as atdrone.population.plots does: each generation draws its hypergraph
+    for module in PRELOAD:
+        importlib.import_module(module)
 
     for line in sys.stdin:
         pid = os.fork()
