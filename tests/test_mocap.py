@@ -282,7 +282,7 @@ def test_scaled_clock_runs_the_frame_rate_in_clock_time() -> None:
     started = time.perf_counter()
     run_for(mocap, clock, 3.0)  # 3 clock seconds: 300 frames in 0.3 wall seconds
     wall, stopped = time.perf_counter() - started, clock.now()
-    assert wall < 0.6
+    assert wall < 1.5  # 0.3 s, with room for a loaded host; at clock rate 1 it would take 3 s
     assert 150 <= mocap.frames <= 305, mocap.frames  # at clock rate 1 it would be 30; a loaded host drops some
     # Frames are stamped in clock time: the last one is near the clock's time at stop (a loaded host may start
     # the thread late, so not at 3.0 exactly); stamped in wall seconds it would read about 0.3.
