@@ -1,7 +1,8 @@
 """The benchmark job through the real service: a driver on the session's Ray SIGKILLed after its first cell is
 finished by a second invocation that runs only the missing cells, and reports byte for byte what an
-uninterrupted run of the same grid reports; that reference runs on a local two-node Ray cluster
-(ray.cluster_utils.Cluster, one CPU per node), where its two training cells run at once, one on each node."""
+uninterrupted run of the same grid reports. That reference (``atdrone benchmark`` too) runs on a local two-node
+Ray cluster (ray.cluster_utils.Cluster, one CPU per node), where its two training cells run at once, one on
+each node."""
 
 from __future__ import annotations
 
@@ -27,32 +28,33 @@ CSVS = ("evaluations", "table", "paired", "normalised", "aggregate", "improvemen
 
 
 TWO_NODES = """
-import json, os, sys
+import os, sys
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # loopback only, as the service's local Ray
 from ray._private import ray_constants
 ray_constants.ENABLE_RAY_CLUSTER = False
 from ray.cluster_utils import Cluster
-from atdrone.benchmark.cells import load_benchmark
-from atdrone.benchmark.job import run_benchmark
+from atdrone.cli import main
 
-doc, uri = json.loads(sys.argv[1]), sys.argv[2]
+config, uri = sys.argv[1], sys.argv[2]
 cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
 cluster.add_node(num_cpus=1)
 cluster.wait_for_nodes()
 try:
-    summary = run_benchmark(load_benchmark(doc), address=cluster.address, tracking_uri=uri, progress=False)
-    nodes = {r["name"]: r["timing"]["node"] for r in summary["records"]}
-    print("NODES " + json.dumps({"nodes": nodes, "all": [n.node_id for n in cluster.list_all_nodes()]}))
+    print("NODES " + " ".join(n.node_id for n in cluster.list_all_nodes()), flush=True)
+    code = main(["benchmark", config, "--address", cluster.address, "--tracking-uri", uri, "--no-progress"])
 finally:
     import ray
     ray.shutdown()
     cluster.shutdown()
+sys.exit(code)
 """
 
 
-def _two_nodes(doc: dict[str, Any], uri: str) -> subprocess.Popen[str]:
-    """``run_benchmark`` in a process of its own, on a local Ray cluster of two nodes with one CPU each."""
-    command = [sys.executable, "-c", TWO_NODES, json.dumps(doc), uri]
+def _two_nodes(doc: dict[str, Any], tmp_path: Path, uri: str) -> subprocess.Popen[str]:
+    """``atdrone benchmark`` in a process of its own, on a local Ray cluster of two nodes with one CPU each."""
+    path = tmp_path / f"{doc['name']}.json"
+    path.write_text(json.dumps(doc))
+    command = [sys.executable, "-c", TWO_NODES, str(path), uri]
     return subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
@@ -80,7 +82,7 @@ def test_a_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_un
     uri = mlflow_store(tmp_path / "mlflow.db")
     whole, killed = tiny_benchmark(tmp_path, "whole"), tiny_benchmark(tmp_path, "killed")
     del whole["max_parallel"]  # cells as many at once as the cluster's CPUs allow: one on each node
-    reference = _two_nodes(whole, uri)  # beside the killed one
+    reference = _two_nodes(whole, tmp_path, uri)  # beside the killed one
     victim = _driver(killed, tmp_path, local_ray, uri)
     folder = tmp_path / "bench" / "killed"
     first = folder / "cells" / "sp-4p2e1o-s0.json"
@@ -99,9 +101,11 @@ def test_a_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_un
     summary = run_benchmark(load_benchmark(killed), address=local_ray, tracking_uri=uri)
     out, _ = reference.communicate(timeout=400)
     assert reference.returncode == 0, out[-4000:]
-    found = json.loads(next(x for x in out.splitlines() if x.startswith("NODES ")).removeprefix("NODES "))
-    trained = {found["nodes"]["sp-4p2e1o-s0"], found["nodes"]["sp-4p2e1o-s1"]}
-    assert trained == set(found["all"])  # the reference ran one training cell on each node
+    assert "whole: 3 cells; report " in out and "weights:sp/4p2e1o (seed " in out  # the command's last lines
+    nodes = set(next(x for x in out.splitlines() if x.startswith("NODES ")).split()[1:])
+    cells = tmp_path / "bench" / "whole" / "cells"
+    trained = {json.loads((cells / f"sp-4p2e1o-s{s}.json").read_text())["timing"]["node"] for s in (0, 1)}
+    assert len(nodes) == 2 and trained == nodes  # the reference ran one training cell on each node
     assert "3 cells: 1 done, 2 to run" in capsys.readouterr().out
     assert first.read_bytes() == kept  # the finished cell was not run again
     assert summary["mlflow_run_id"] == parent  # the same parent run, continued
