@@ -490,3 +490,32 @@ def test_bridge_open_times_out_on_a_silent_port(tmp_path) -> None:
         assert time.monotonic() - t0 < 6.0  # 1 s and the clean-up, with room for a loaded host
     finally:
         silent.close()
+
+
+def test_closing_the_bridge_stops_cflibs_ping_thread_before_its_socket(tmp_path, monkeypatch) -> None:
+    """cflib's latency thread pings every link (every 0.1 s). A ping sent on a socket that is closing reports a
+    link error on that thread, whose disconnect callback then joins the thread itself: RuntimeError, and the
+    thread dies with a traceback (seen once in a flight test). The bridge stops the pings before it closes a
+    link. Here the driver's close holds that window open for 0.3 s, so a close in the other order meets it:
+    the ping thread then dies, and cflib's other threads, handling the same link error, wait on it for ever."""
+    from cflib.crtp.udpdriver import UdpDriver
+
+    real_close = UdpDriver.close
+
+    def slow_close(self: UdpDriver) -> None:
+        if self.socket is not None:
+            self.socket.close()  # closed, and not yet forgotten: a send now fails
+            time.sleep(0.3)
+        real_close(self)
+
+    monkeypatch.setattr(UdpDriver, "close", slow_close)
+    died: list[str] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: died.append(f"{args.thread.name}: {args.exc_value!r}"))
+    with SimFleet(["a", "b"], np.array([[0.5, 0.5, 0.0], [1.5, 0.5, 0.0]]), ScaledClock(1.0), radio=False) as fleet:
+        bridge = CflibBridge(fleet.uris, cache_dir=tmp_path)  # cflib's own UDP driver
+        bridge.open()
+        closing = threading.Thread(target=bridge.close, daemon=True)
+        closing.start()
+        closing.join(10.0)
+        assert not closing.is_alive(), "the bridge's close hangs (cflib's threads wait on each other)"
+    assert not died, died

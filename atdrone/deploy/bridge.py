@@ -308,6 +308,10 @@ class CflibBridge:
             links = list(self._swarm._cfs.values())
 
             def close_link(scf: Any) -> None:
+                # cflib's ping thread first: a ping on a closing socket reports a link error on that thread,
+                # whose disconnect callback joins the thread itself (it dies with a RuntimeError)
+                with contextlib.suppress(Exception):
+                    scf.cf.link_statistics.stop()
                 with contextlib.suppress(Exception):  # a link that is already gone
                     scf.close_link()
 
