@@ -35,13 +35,12 @@ ray_constants.ENABLE_RAY_CLUSTER = False
 from ray.cluster_utils import Cluster
 from atdrone.cli import main
 
-config, uri = sys.argv[1], sys.argv[2]
 cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
 cluster.add_node(num_cpus=1)
 cluster.wait_for_nodes()
 try:
     print("NODES " + " ".join(n.node_id for n in cluster.list_all_nodes()), flush=True)
-    code = main(["benchmark", config, "--address", cluster.address, "--tracking-uri", uri, "--no-progress"])
+    code = main(["benchmark", *sys.argv[1:], "--address", cluster.address])
 finally:
     import ray
     ray.shutdown()
@@ -50,21 +49,17 @@ sys.exit(code)
 """
 
 
-def _two_nodes(doc: dict[str, Any], tmp_path: Path, uri: str) -> subprocess.Popen[str]:
-    """``atdrone benchmark`` in a process of its own, on a local Ray cluster of two nodes with one CPU each."""
+def _benchmark(doc: dict[str, Any], tmp_path: Path, uri: str, address: str = "") -> subprocess.Popen[str]:
+    """``atdrone benchmark`` of ``doc`` in a process of its own: joined to the Ray at ``address``, else on a local
+    Ray cluster of two nodes with one CPU each (:data:`TWO_NODES`)."""
     path = tmp_path / f"{doc['name']}.json"
     path.write_text(json.dumps(doc))
-    command = [sys.executable, "-c", TWO_NODES, str(path), uri]
+    args = [str(path), "--tracking-uri", uri, "--no-progress"]
+    if address:
+        command = [sys.executable, "-m", "atdrone.cli", "benchmark", *args, "--address", address]
+    else:
+        command = [sys.executable, "-c", TWO_NODES, *args]
     return subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def _driver(doc: dict[str, Any], tmp_path: Path, address: str, uri: str) -> subprocess.Popen[bytes]:
-    """``atdrone benchmark`` in a process of its own, joined to the session's Ray."""
-    path = tmp_path / f"{doc['name']}.json"
-    path.write_text(json.dumps(doc))
-    command = [sys.executable, "-m", "atdrone.cli", "benchmark", str(path), "--address", address]
-    command += ["--tracking-uri", uri, "--no-progress"]
-    return subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
 def _report(results: Path, name: str) -> dict[str, Any]:
@@ -82,13 +77,13 @@ def test_a_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_un
     uri = mlflow_store(tmp_path / "mlflow.db")
     whole, killed = tiny_benchmark(tmp_path, "whole"), tiny_benchmark(tmp_path, "killed")
     del whole["max_parallel"]  # cells as many at once as the cluster's CPUs allow: one on each node
-    reference = _two_nodes(whole, tmp_path, uri)  # beside the killed one
-    victim = _driver(killed, tmp_path, local_ray, uri)
+    reference = _benchmark(whole, tmp_path, uri)  # on two nodes, beside the killed one
+    victim = _benchmark(killed, tmp_path, uri, address=local_ray)
     folder = tmp_path / "bench" / "killed"
     first = folder / "cells" / "sp-4p2e1o-s0.json"
     deadline = time.monotonic() + 240
     while not first.exists():
-        assert victim.poll() is None, victim.communicate()[0].decode()[-3000:]
+        assert victim.poll() is None, victim.communicate()[0][-3000:]
         assert time.monotonic() < deadline, "the first cell never finished"
         time.sleep(0.2)
     os.kill(victim.pid, signal.SIGKILL)
