@@ -61,3 +61,10 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically."""
     return atomic_write(path, lambda f: f.write(data))
+
+
+def user_cache(*parts: str) -> Path:
+    """A folder of atdrone's cache: ``$ATDRONE_CACHE`` or ``$XDG_CACHE_HOME/atdrone`` (``~/.cache/atdrone``)."""
+    if os.environ.get("ATDRONE_CACHE"):
+        return Path(os.environ["ATDRONE_CACHE"]).joinpath(*parts)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache", "atdrone", *parts)

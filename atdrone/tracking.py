@@ -7,14 +7,18 @@ Metric names are namespaced: train/..., eval/..., perf/..., pop/...
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+from atdrone.fileio import user_cache
 
 DEFAULT_URI = "sqlite:///mlflow.db"
 log = logging.getLogger(__name__)
@@ -262,8 +266,9 @@ def _experiment_artifacts(uri: str, name: str) -> str | None:
 def model_checkpoint(uri: str, tracking: str | None = None, dst: str | Path | None = None) -> str:
     """A local copy of the checkpoint behind a registered model ``models:/NAME@ALIAS`` (or ``models:/NAME/VERSION``).
 
-    The version's source is the project's checkpoint file; it is downloaded (to ``dst``,
-    default a fresh temporary folder) and loaded by the caller with
+    The version's source is the project's checkpoint file; it is downloaded to ``dst``, or by
+    default once into the user's cache (:func:`atdrone.fileio.user_cache` ``models/``, keyed by the
+    tracking store and the version's source, and read from there after), and loaded by the caller with
     :func:`atdrone.models.checkpoint.load_checkpoint`, never unpickled. KeyError naming
     the model when it, its alias or its file is missing.
     """
@@ -286,13 +291,34 @@ def model_checkpoint(uri: str, tracking: str | None = None, dst: str | Path | No
     filename = (version.tags or {}).get("checkpoint_file")
     if not filename:
         raise KeyError(f"registered model {uri!r} is not an atdrone checkpoint (no checkpoint_file tag)")
-    folder = Path(dst) if dst is not None else Path(tempfile.mkdtemp(prefix="atdrone-model-"))
+    source = version.source or ""
+    if dst is not None:
+        return _download(mlflow, uri, source, Path(dst), tracking)
+    # a version's source names its run's artifact, which never changes: one download per store and source
+    key = hashlib.sha256(f"{tracking_uri(tracking)}\n{source}".encode()).hexdigest()[:24]
+    cached = user_cache("models", key)
+    if (cached / filename).is_file():
+        return str(cached / filename)
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=cached.parent))
+    try:
+        _download(mlflow, uri, source, staging, tracking)
+        os.replace(staging, cached)  # whole or not at all; a concurrent download that got there first wins
+    except OSError:
+        if not (cached / filename).is_file():
+            raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return str(cached / filename)
+
+
+def _download(mlflow: Any, uri: str, source: str, folder: Path, tracking: str | None) -> str:
     try:
         local = mlflow.artifacts.download_artifacts(
-            artifact_uri=version.source, dst_path=str(folder), tracking_uri=tracking_uri(tracking)
+            artifact_uri=source, dst_path=str(folder), tracking_uri=tracking_uri(tracking)
         )
     except Exception as exc:  # a version whose files were deleted or never uploaded
-        raise KeyError(f"registered model {uri!r}: cannot fetch {version.source}: {exc}") from None
+        raise KeyError(f"registered model {uri!r}: cannot fetch {source}: {exc}") from None
     return str(local)
 
 

@@ -46,6 +46,12 @@ def _mlflow_in_tmp(
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_store(tmp_path_factory.mktemp("mlflow") / "mlflow.db"))
 
 
+@pytest.fixture(autouse=True)
+def _cache_in_tmp(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """atdrone's user cache (downloaded models, cflib's TOC) in a temporary folder, not the user's home."""
+    monkeypatch.setenv("ATDRONE_CACHE", str(tmp_path_factory.mktemp("cache")))
+
+
 @pytest.fixture(scope="session")
 def _mlflow_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An empty MLflow sqlite store with MLflow's schema, made by MLflow once per test process."""

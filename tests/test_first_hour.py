@@ -11,6 +11,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -105,13 +106,32 @@ def test_a_registered_model_resolves_to_its_checkpoint_and_member(
     tracker = Tracker(uri)
     with tracker.run("hola_quick", "run"):
         version = tracker.register_checkpoint(run_dir / "members" / "hola-g3-0.pt", "atdrone-hola_quick", 30.5)
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("ATDRONE_CACHE", str(cache))
+    import mlflow.artifacts
+
+    downloads = []
+    real_download = mlflow.artifacts.download_artifacts
+
+    def counted(**kwargs: Any) -> str:
+        downloads.append(kwargs["artifact_uri"])
+        return real_download(**kwargs)
+
+    monkeypatch.setattr(mlflow.artifacts, "download_artifacts", counted)
+    found_at = set()
     for name in ("models:/atdrone-hola_quick@champion", f"models:/atdrone-hola_quick/{version}"):
         found = resolve(name)
         assert found.kind == "model" and found.label == "hola-g3-0" and found.task == "4p2e1o"
         assert found.checkpoint is not None
         assert read_header(found.checkpoint)["sha256"] == read_header(SP_HIGH)["sha256"]
+        found_at.add(found.checkpoint)
         assert main(["registry", "show", name]) == 0
         assert "id: hola-g3-0" in capsys.readouterr().out
+    # downloaded once, into the cache, and read from there after: nothing left in a temporary folder
+    (checkpoint,) = found_at
+    assert resolve("models:/atdrone-hola_quick@champion").checkpoint == checkpoint
+    assert len(downloads) == 1 and checkpoint.parent.parent == cache / "models"
+    assert [p.name for p in (cache / "models").iterdir()] == [checkpoint.parent.name]
     with pytest.raises(PolicyNotFound, match="no policy 'models:/atdrone-nope@champion': no registered model"):
         resolve("models:/atdrone-nope@champion")
 

@@ -41,7 +41,6 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import math
-import os
 import threading
 import time
 from collections import Counter, deque
@@ -54,11 +53,11 @@ import numpy as np
 
 from atdrone.deploy.clock import Clock, RealClock
 from atdrone.errors import UserError
+from atdrone.fileio import user_cache
 
 MELLINGER, KALMAN = 2, 2
 BIT_CAN_FLY, BIT_LOCKED = 3, 6
 VARIANCE_SETTLED = 0.001  # m^2: the spread of the last 10 variances cflib's reset_estimators waits for
-DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "atdrone" / "cflib-toc"
 
 Setpoint = tuple[np.ndarray, np.ndarray, np.ndarray]  # position, velocity, acceleration (3,) each
 
@@ -141,7 +140,7 @@ class CflibBridge:
         self.yaw = float(yaw)
         self.extpos_std, self.extquat_std = extpos_std, extquat_std
         self.connect_timeout = connect_timeout
-        self.cache_dir = Path(cache_dir) if cache_dir else DEFAULT_CACHE
+        self.cache_dir = Path(cache_dir) if cache_dir else user_cache("cflib-toc")
         self.pose_rate = pose_rate
         self.heartbeat_period, self.heartbeat_timeout = heartbeat_period, heartbeat_timeout
         self._cf: dict[str, Any] = {}
