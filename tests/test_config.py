@@ -774,18 +774,21 @@ def test_a_run_saved_with_ppo_overrides_only_resumes_with_the_values_of_its_time
     from atdrone.service.driver import RESUME_MAY_CHANGE
     from atdrone.service.experiment import load_experiment
 
-    # only the default's epochs moved since (2 -> 4, issue 26)
-    era = {"default": dataclasses.replace(ppo.PRESETS["default"], epochs=2), "paper": ppo.PRESETS["paper"]}
+    # only the default's epochs and lr moved since (2 -> 4 and 3e-4 -> 1e-3, issue 26)
+    era = {"default": dataclasses.replace(ppo.PRESETS["default"], epochs=2, lr=3e-4), "paper": ppo.PRESETS["paper"]}
     assert era == ppo.OVERRIDES_ERA_PRESETS
-    then = load_experiment(_service_doc(hidden=32, epochs=2)).to_dict()
+    then = load_experiment(_service_doc(hidden=32, epochs=2, lr=3e-4)).to_dict()
     run_dir = _saved(tmp_path, {**then, "ppo": {"hidden": 32}})
     with pytest.raises(RunError, match=r"ppo\.epochs: '<unset>' -> 2"):  # the text alone is not what it ran
         check_resume(run_dir, then, RESUME_MAY_CHANGE)
     check_resume(run_dir, then, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
     with pytest.raises(RunError, match=r"ppo\.hidden: 32 -> 128"):  # its own override still counts
         check_resume(
-            run_dir, load_experiment(_service_doc(epochs=2)).to_dict(), RESUME_MAY_CHANGE, ppo.saved_ppo_document
+            run_dir,
+            load_experiment(_service_doc(epochs=2, lr=3e-4)).to_dict(),
+            RESUME_MAY_CHANGE,
+            ppo.saved_ppo_document,
         )
     today = load_experiment(_service_doc(hidden=32)).to_dict()
-    with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4"):  # today's default is not what it ran with
+    with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4.*ppo\.lr: 0\.0003 -> 0\.001"):  # today's defaults
         check_resume(run_dir, today, RESUME_MAY_CHANGE, ppo.saved_ppo_document)

@@ -93,7 +93,7 @@ CHANGES = {
     "rollout_steps": 16,
     "epochs": 1,
     "minibatch_size": 32,
-    "lr": 1e-3,
+    "lr": 2e-4,
     "lr_schedule": "constant",
     "gamma": 0.9,
     "gae_lambda": 0.5,
@@ -193,6 +193,7 @@ def test_a_changed_ppo_field_gives_the_service_update_the_local_learner_gets(ser
     updates equal, bit for bit, those of a local Learner given the same change, and differ from the
     baseline's (so a field the service dropped or took from the preset would fail here)."""
     base, flat = baseline
+    assert getattr(base, name) != CHANGES[name], f"{name}: the change is the baseline's value"
     ppo = dataclasses.replace(base, **{name: CHANGES[name]})
     changed = _service_update(service_workers, ppo)
     assert changed.shape != flat.shape or not torch.equal(changed, flat)

@@ -369,10 +369,11 @@ def test_pbt_exploits_and_explores_and_br_trains_against_the_zoo(local_ray, tmp_
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     first, second = summary["reports"]
     pbt = first.documents["pbt.json"]
-    # generation 0 spreads the learning rates (3e-4 x 1.25^(i - 1/2), as its one update used them); the worst
+    # generation 0 spreads the learning rates (lr x 1.25^(i - 1/2), as its one update used them); the worst
     # member then continues from the best one's weights
     used = {t.member: t.history[0]["train/lr"] for r in (first, second) for t in r.training}  # schedule at 1
-    assert [used[m] for m in first.learners] == pytest.approx([3e-4 / 1.25**0.5, 3e-4 * 1.25**0.5])
+    lr = cfg.ppo["lr"]
+    assert [used[m] for m in first.learners] == pytest.approx([lr / 1.25**0.5, lr * 1.25**0.5])
     ((loser, winner),) = pbt["exploited"].items()
     assert pbt["fitness"][loser] < pbt["fitness"][winner] or loser == first.learners[0]  # ties: order kept
     reg = Registry(tmp_path / "pbt_t" / "registry.db")
