@@ -792,3 +792,21 @@ def test_a_run_saved_with_ppo_overrides_only_resumes_with_the_values_of_its_time
     today = load_experiment(_service_doc(hidden=32)).to_dict()
     with pytest.raises(RunError, match=r"ppo\.epochs: 2 -> 4.*ppo\.lr: 0\.0003 -> 0\.001"):  # today's defaults
         check_resume(run_dir, today, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
+
+
+COMMITTED_DRONES = sorted((CONFIG_DIR / "zoos" / "checkpoints").glob("*.pt")) + sorted(
+    (CONFIG_DIR / "pools" / "checkpoints").glob("*.pt")
+)
+
+
+@pytest.mark.parametrize("checkpoint", COMMITTED_DRONES, ids=lambda p: p.stem)
+def test_a_committed_drones_recipe_trains_with_the_ppo_values_in_its_header(checkpoint: Path) -> None:
+    """configs/train/<name>.json, the recipe its README names, loads with every PPO value the drone was trained
+    with (its header): a later change of a PPO default cannot change what the recipe trains."""
+    from atdrone.learn.trainer import load_train_config
+    from atdrone.models.checkpoint import read_header
+
+    header = read_header(checkpoint)
+    recipe = CONFIG_DIR / "train" / f"{header['config']['name']}.json"
+    ppo = load_train_config(recipe).ppo
+    assert {k: ppo[k] for k in header["ppo"]} == header["ppo"]
