@@ -7,6 +7,7 @@ commit, e.g. ``git worktree add /tmp/before <commit>``) it measures both trees i
 alternating subprocess rounds, each with its own code on PYTHONPATH, and prints the ratio
 this tree / reference (issue 12: no slower than before the redesign).
 Usage: python benchmarks/train_throughput.py [--task 4p2e1o] [--updates 8] [--epochs N] [--reference DIR --rounds 3]
+       [--device cpu cuda --rounds 3]: the update on each device in turn, in one process
 """
 
 from __future__ import annotations
@@ -26,12 +27,15 @@ import numpy as np
 HERE = Path(__file__).resolve().parent.parent
 
 
-def measure(task: str, updates: int, mode: str = "self_play", **ppo: object) -> dict[str, object]:
+def measure(
+    task: str, updates: int, mode: str = "self_play", device: str = "auto", update_threads: int = 2, **ppo: object
+) -> dict[str, object]:
     import atdrone
     from atdrone.learn.trainer import Trainer, load_train_config
 
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = load_train_config({"name": "bench", "task": task, "mode": mode, "out_dir": tmp, "ppo": dict(ppo)})
+        doc = {"name": "bench", "task": task, "mode": mode, "out_dir": tmp, "ppo": dict(ppo), "device": device}
+        cfg = load_train_config({**doc, "update_threads": update_threads})
         trainer = Trainer(cfg)
         trainer.update_once()  # warm-up
         rows, start = [], time.perf_counter()
@@ -42,6 +46,7 @@ def measure(task: str, updates: int, mode: str = "self_play", **ppo: object) -> 
     split = {k: float(np.sum([r[f"perf/{k}_s"] for r in rows])) for k in ("simulation", "inference", "update")}
     return {
         "mode": mode,
+        "device": str(trainer.learner.device),
         "atdrone": str(Path(atdrone.__file__).resolve().parent),
         "pursuer_steps_per_s": round(samples / wall, 1),
         "env_steps_per_s": round(samples / trainer.worker.match.num_ctrl / wall, 1),
@@ -83,12 +88,37 @@ def main() -> None:
     parser.add_argument("--reference", type=Path, default=None, help="another checkout to compare with")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per tree with --reference")
     parser.add_argument("--epochs", type=int, default=None, help="PPO epochs (default: the default config's)")
+    parser.add_argument(
+        "--device", nargs="+", default=["auto"], help="the update's device; several (cpu cuda): --rounds alternating"
+    )
+    parser.add_argument("--update-threads", type=int, default=2, help="torch threads of a CPU update")
     args = parser.parse_args()
     result: dict[str, object] = {"benchmark": "train_throughput", "task": args.task}
     result["target_pursuer_steps_per_s"] = 20000
-    if args.reference is None:
-        ppo = {"epochs": args.epochs} if args.epochs is not None else {}
-        result["self_play"] = measure(args.task, args.updates, **ppo)
+    ppo = {"epochs": args.epochs} if args.epochs is not None else {}
+    if args.reference is None and len(args.device) == 1:
+        result["self_play"] = measure(
+            args.task, args.updates, device=args.device[0], update_threads=args.update_threads, **ppo
+        )
+    elif args.reference is None:  # devices side by side, in one process (e.g. what a GPU update gives)
+        import torch
+
+        by: dict[str, list[dict[str, object]]] = {d: [] for d in args.device}
+        for _ in range(args.rounds):
+            for d in args.device:
+                by[d].append(measure(args.task, args.updates, device=d, update_threads=args.update_threads, **ppo))
+        rate = {d: [float(str(r["pursuer_steps_per_s"])) for r in rs] for d, rs in by.items()}
+        first = args.device[0]
+        result.update(
+            gpu=torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+            torch=torch.__version__,
+            cpu_count=os.cpu_count(),
+            update_threads=args.update_threads,
+            rounds=args.rounds,
+            pursuer_steps_per_s=rate,
+            split_s={d: [r["split_s"] for r in rs] for d, rs in by.items()},
+            ratio_over_first={d: round(float(np.mean(v)) / float(np.mean(rate[first])), 3) for d, v in rate.items()},
+        )
     else:
         runs: dict[str, list[dict[str, Any]]] = {"this": [], "reference": []}
         for _ in range(args.rounds):
