@@ -5,7 +5,8 @@ on --episodes self-play episodes every --eval-every updates (evaluation time cou
 the wall time). Stops at the target or the time limit; with --env-steps, at that budget
 instead (the SUC there, whatever the target). Prints JSON (the curve, the time to target,
 the last evaluation's SUC) and writes the learning curve PNG and the final checkpoint to --out.
-Usage: python benchmarks/learning_sp.py [--minutes 20] [--target 70] [--env-steps N] [--out reports/learning_sp]
+Usage: python benchmarks/learning_sp.py [--minutes 20] [--target 70] [--env-steps N] [--device auto|cpu|cuda]
+       [--out reports/learning_sp]
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ def main() -> None:
     parser.add_argument("--out", default="reports/learning_sp")
     parser.add_argument("--ppo", default="{}", help="PPO overrides as JSON, e.g. '{\"lr\": 1e-4}'")
     parser.add_argument("--update-threads", type=int, default=2, help="torch threads of the update")
+    parser.add_argument("--device", default="auto", help="the update's device: auto (CUDA when there), cpu, cuda")
     args = parser.parse_args()
 
     from atdrone.learn.trainer import Trainer, load_train_config, plot_curve
@@ -44,6 +46,7 @@ def main() -> None:
             "out_dir": str(out),
             "ppo": json.loads(args.ppo),
             "update_threads": args.update_threads,
+            "device": args.device,
         }
     )
     trainer = Trainer(cfg)
@@ -66,7 +69,7 @@ def main() -> None:
     trainer.history = rows
     trainer.save()
     plot_curve(history, out / "curve.png", title=f"self-play IPPO on {args.task}: eval SUC ({args.episodes} episodes)")
-    evals = history.dropna(subset=["eval/SUC"])
+    evals = history.dropna(subset=["eval/SUC"]) if "eval/SUC" in history else history.iloc[:0]  # none: too short
     result = {
         "benchmark": "learning_sp",
         "task": args.task,
@@ -77,6 +80,7 @@ def main() -> None:
         "best_SUC": float(evals["eval/SUC"].max()) if len(evals) else None,
         "final_SUC": float(evals["eval/SUC"].iloc[-1]) if len(evals) else None,
         "env_steps": trainer.env_steps,
+        "device": str(trainer.learner.device),
         "curve": [
             {"wall_s": round(r["wall_s"]), "env_steps": int(r["env_steps"]), "SUC": r["eval/SUC"], "COL": r["eval/COL"]}
             for _, r in evals.iterrows()
