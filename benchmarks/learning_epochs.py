@@ -30,7 +30,8 @@ from typing import Any
 import pandas as pd
 
 from atdrone.benchmark.stats import paired_difference
-from atdrone.learn.ppo import PPOConfig
+from atdrone.config import ConfigError
+from atdrone.learn.ppo import ppo_config
 
 HERE = Path(__file__).resolve().parent
 
@@ -43,7 +44,7 @@ def _result(path: Path) -> dict[str, Any]:
 
 def _eval_every(overrides: dict[str, Any], eval_env_steps: int) -> int:
     """Updates between evaluations so that they come every ``eval_env_steps`` env steps."""
-    ppo = PPOConfig(**overrides)
+    ppo = ppo_config(overrides)
     per_update = ppo.num_envs * ppo.rollout_steps
     if eval_env_steps % per_update:
         raise SystemExit(f"--eval-env-steps {eval_env_steps} is not a multiple of an update's {per_update} env steps")
@@ -91,7 +92,10 @@ def _variants(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
         if not sep or not name:
             raise SystemExit(f"--variant {item!r}: expected NAME=JSON")
         overrides = json.loads(text)
-        PPOConfig(**overrides)  # an unknown field fails here, before any run
+        try:
+            ppo_config(overrides)  # an unknown field or a value out of bounds fails here, before any run
+        except ConfigError as exc:
+            raise SystemExit(f"--variant {name}: {exc}") from None
         variants[name] = overrides
     return variants
 

@@ -34,8 +34,8 @@ def measure(
     from atdrone.learn.trainer import Trainer, load_train_config
 
     with tempfile.TemporaryDirectory() as tmp:
-        doc = {"name": "bench", "task": task, "mode": mode, "out_dir": tmp, "ppo": dict(ppo), "device": device}
-        cfg = load_train_config({**doc, "update_threads": update_threads})
+        doc = {"name": "bench", "task": task, "mode": mode, "out_dir": tmp, "ppo": dict(ppo)}
+        cfg = load_train_config({**doc, "device": device, "update_threads": update_threads})
         trainer = Trainer(cfg)
         trainer.update_once()  # warm-up
         rows, start = [], time.perf_counter()
@@ -93,6 +93,10 @@ def main() -> None:
     )
     parser.add_argument("--update-threads", type=int, default=2, help="torch threads of a CPU update")
     args = parser.parse_args()
+    if len(set(args.device)) != len(args.device):
+        parser.error(f"--device names a device twice: {args.device}")
+    if args.reference is not None and args.device != ["auto"]:
+        parser.error("--reference compares two trees on the default device; --device compares devices in this tree")
     result: dict[str, object] = {"benchmark": "train_throughput", "task": args.task}
     result["target_pursuer_steps_per_s"] = 20000
     ppo = {"epochs": args.epochs} if args.epochs is not None else {}
@@ -103,11 +107,11 @@ def main() -> None:
     elif args.reference is None:  # devices side by side, in one process (e.g. what a GPU update gives)
         import torch
 
-        by: dict[str, list[dict[str, object]]] = {d: [] for d in args.device}
+        by: dict[str, list[dict[str, Any]]] = {d: [] for d in args.device}
         for _ in range(args.rounds):
             for d in args.device:
                 by[d].append(measure(args.task, args.updates, device=d, update_threads=args.update_threads, **ppo))
-        rate = {d: [float(str(r["pursuer_steps_per_s"])) for r in rs] for d, rs in by.items()}
+        rate = {d: [float(r["pursuer_steps_per_s"]) for r in rs] for d, rs in by.items()}
         first = args.device[0]
         result.update(
             gpu=torch.cuda.get_device_name() if torch.cuda.is_available() else None,

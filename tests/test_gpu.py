@@ -43,3 +43,5 @@ def test_an_update_on_cuda_is_the_cpus_to_float_precision() -> None:
     assert moved.float().mean() > 0.5  # (the rest: gradients near zero or none from this fragment)
     agree = (torch.sign(step_cpu[moved]) == torch.sign(step_gpu[moved])).float().mean()
     assert agree > 0.99, f"only {agree:.3f} of the parameters moved the same way on the GPU"
+    close = ((step_gpu[moved] - step_cpu[moved]).abs() <= 0.01 * ppo.lr).float().mean()
+    assert close > 0.99, f"only {close:.3f} of the parameters moved as far on the GPU (the learning rate, the step)"
