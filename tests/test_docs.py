@@ -2,7 +2,7 @@
 
 A fenced block tagged ``sh`` or ``python`` runs in a scratch folder (``configs/`` linked
 in, MLflow in the folder) unless the line before it is a marker comment
-``<!-- docs-test: KIND -->`` with KIND one of :data:`SKIP` (what docs/index.md
+``<!-- docs-test: KIND -->`` with KIND one of :data:`SKIP` (what CONTRIBUTING.md
 documents). A ``json`` block must parse. A block without a language that holds commands
 is refused, so a command cannot hide from this test.
 
@@ -24,10 +24,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+PAGES = [ROOT / "README.md", ROOT / "CONTRIBUTING.md", *sorted((ROOT / "docs").rglob("*.md"))]
 SKIP = {
     "long": "takes minutes (training, make demo)",
     "demo": "needs make demo's outputs",
+    "ray": "starts and stops a Ray head of its own, after make demo",
     "hardware": "needs drones, a radio or a Ray cluster",
 }
 RUN = ("sh", "python")
@@ -75,6 +76,19 @@ AFTER_DEMO = [b for b in ALL if b.lang in RUN and b.marker == "demo"]
 def test_the_pages_have_blocks_and_some_run() -> None:
     assert ROOT / "docs" / "index.md" in PAGES
     assert len(RUNNABLE) >= 4, [b.name for b in RUNNABLE]
+
+
+def test_the_user_pages_name_no_issue_numbers() -> None:
+    """Users cannot see the project's issue tracker: README.md and docs/ never cite it."""
+    cited = re.compile(r"\bissues? #?[0-9]+", re.IGNORECASE)
+    hits = [
+        f"{page.relative_to(ROOT)}:{n}"
+        for page in PAGES
+        if page.name != "CONTRIBUTING.md"
+        for n, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1)
+        if cited.search(line)
+    ]
+    assert not hits, f"issue numbers in user pages: {hits}"
 
 
 @pytest.mark.parametrize("block", ALL, ids=lambda b: b.name)
