@@ -24,8 +24,9 @@ from atdrone.policies.rules import GreedyPolicy
 from atdrone.registry import Registry
 from atdrone.resolve import PolicyNotFound, resolve, resolve_checkpoint
 
-SP_LOW = repo_path("configs/zoos/checkpoints/sp_low.pt")
-SP_HIGH = repo_path("configs/zoos/checkpoints/sp_high.pt")
+# the shipped Zoo 2 drones, wherever the zoo keeps them (configs/zoos/checkpoints/, per task or not)
+SP_LOW = min(repo_path("configs/zoos/checkpoints").rglob("sp_low.pt"))
+SP_HIGH = min(repo_path("configs/zoos/checkpoints").rglob("sp_high.pt"))
 
 
 def _run(tmp_path: Path, name: str, members: dict[str, Path]) -> Path:
@@ -150,6 +151,33 @@ def test_evaluate_render_and_show_take_a_member_id(
     assert "4p2e1o seed 0" in out  # the member's task, not render's 4p2e5o default
     assert main(["registry", "show", "hola-g3-0"]) == 0
     assert "run: hola_quick" in capsys.readouterr().out
+
+
+def test_evaluate_prints_a_confidence_interval_over_episodes_not_a_std_of_one_value(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import math
+    import re
+
+    import pandas as pd
+
+    argv = ["evaluate", "--policy", "greedy", "--task", "4p2e1o", "--zoo", "zoo1", "--episodes", "40"]
+    assert main([*argv, "--no-progress", "--out-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "±" not in out and "std" not in out and "seeds [" not in out  # one seed: no spread over seeds
+    value, low, high = map(float, re.search(r"SUC %\s+([\d.]+) \[([\d.]+), ([\d.]+)\]", out).groups())
+    episodes = pd.read_csv(tmp_path / "greedy_4p2e1o_zoo1.csv")
+    wins, n = int(episodes["success"].sum()), len(episodes)
+    assert value == round(100 * wins / n, 1) and low < value < high
+    # Wilson's score interval of wins / n, computed here from its definition
+    z = 1.959963984540054
+    centre, half = (wins + z * z / 2) / (n + z * z), z * math.sqrt(wins * (n - wins) / n + z * z / 4) / (n + z * z)
+    assert (low, high) == (round(100 * (centre - half), 1), round(100 * (centre + half), 1))
+    summary = json.loads((tmp_path / "greedy_4p2e1o_zoo1.json").read_text())["cells"][0]["summary"]
+    assert summary["SUC_ci95"] == pytest.approx([100 * (centre - half), 100 * (centre + half)])
+    # two seeds: the interval over the seeds' values as well
+    assert main([*argv, "--seeds", "0", "1", "--no-progress", "--out-dir", str(tmp_path)]) == 0
+    assert re.search(r"SUC %\s+[\d.]+ \[[\d.]+, [\d.]+\]; seeds \[-?[\d.]+, [\d.]+\]", capsys.readouterr().out)
 
 
 # ------------------------------------------------------------- bad inputs

@@ -12,11 +12,15 @@ in. From the raw episode records:
   COL  % of episodes with a collision (drone-drone or drone-obstacle);
   AST  mean length in steps of the successful episodes (NaN when none succeeded);
   REW  mean team return per episode.
-With several seeds each metric is reported as mean and std (population std) over seeds.
+Each metric comes with a 95 % confidence interval over the episodes (all seeds pooled):
+Wilson's score interval for the percentages SUC and COL, the normal interval of a mean
+for AST and REW. With several seeds, the Student-t interval of the per-seed values says
+how much a seed moves the result; one seed has no spread to report, so none is printed.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -35,6 +39,50 @@ if TYPE_CHECKING:  # imported where a frame is made: a learner or rollout actor 
 
 METRICS = ("SUC", "COL", "AST", "REW")
 MAX_ENVS = 1024
+Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile
+Interval = tuple[float, float]
+
+
+def wilson_interval(successes: int, n: int, z: float = Z95) -> Interval:
+    """Wilson's score interval of a proportion, in %: sound at 0 % and 100 %, where the normal one collapses."""
+    if n < 1:
+        return (float("nan"), float("nan"))
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (100.0 * max(0.0, centre - half), 100.0 * min(1.0, centre + half))
+
+
+def mean_interval(values: np.ndarray, z: float = Z95) -> Interval:
+    """The normal 95 % interval of a mean of independent values; NaN with fewer than two."""
+    values = np.asarray(values, dtype=float)
+    if len(values) < 2:
+        return (float("nan"), float("nan"))
+    mean, half = float(values.mean()), z * float(values.std(ddof=1)) / math.sqrt(len(values))
+    return (mean - half, mean + half)
+
+
+def seed_interval(values: np.ndarray) -> Interval:
+    """The Student-t 95 % interval of the mean of per-seed values; NaN with fewer than two finite ones."""
+    from scipy.stats import t as student
+
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if len(finite) < 2:
+        return (float("nan"), float("nan"))
+    half = float(student.ppf(0.975, len(finite) - 1)) * float(finite.std(ddof=1)) / math.sqrt(len(finite))
+    return (float(finite.mean()) - half, float(finite.mean()) + half)
+
+
+def episode_intervals(records: pd.DataFrame) -> dict[str, Interval]:
+    """The 95 % interval of each of METRICS over a set of episode records."""
+    success = records["success"].to_numpy(bool)
+    return {
+        "SUC": wilson_interval(int(success.sum()), len(success)),
+        "COL": wilson_interval(int(records["collided"].to_numpy(bool).sum()), len(success)),
+        "AST": mean_interval(records["length"].to_numpy()[success]),
+        "REW": mean_interval(records["return"].to_numpy()),
+    }
 
 
 @dataclass(frozen=True)
@@ -46,6 +94,8 @@ class Evaluation:
     learner: str
     per_seed: pd.DataFrame  # index seed, columns METRICS
     records: pd.DataFrame  # one row per episode
+    zoo_version: str = ""  # the zoo manifest's version of the task's zoos ("" for a zoo it does not list)
+    cross_task: tuple[str, ...] = ()  # partners trained on another task (``name@task``), played on purpose
 
     @property
     def mean(self) -> dict[str, float]:
@@ -55,13 +105,37 @@ class Evaluation:
     def std(self) -> dict[str, float]:
         return {m: float(self.per_seed[m].std(ddof=0)) for m in METRICS}
 
+    @property
+    def pooled(self) -> dict[str, float]:
+        """The metrics of all episodes together (the centre of :attr:`interval`)."""
+        return metrics(self.records)
+
+    @property
+    def interval(self) -> dict[str, Interval]:
+        """95 % confidence interval of each metric over the episodes, every seed's pooled."""
+        return episode_intervals(self.records)
+
+    @property
+    def seed_interval(self) -> dict[str, Interval] | None:
+        """95 % Student-t interval of each metric over the seeds' values; None with one seed."""
+        if len(self.per_seed) < 2:
+            return None
+        return {m: seed_interval(self.per_seed[m].to_numpy()) for m in METRICS}
+
     def summary(self) -> dict[str, object]:
         row: dict[str, object] = {"task": self.task, "zoo": self.zoo, "learner": self.learner}
+        row["zoo_version"] = self.zoo_version
+        if self.cross_task:
+            row["cross_task_partners"] = list(self.cross_task)
         row["episodes"] = len(self.records)
         row["seeds"] = len(self.per_seed)
+        interval, over_seeds = self.interval, self.seed_interval
         for m in METRICS:
             row[m] = self.mean[m]
             row[f"{m}_std"] = self.std[m]
+            row[f"{m}_ci95"] = list(interval[m])
+            if over_seeds is not None:
+                row[f"{m}_seeds_ci95"] = list(over_seeds[m])
         return row
 
 
@@ -127,12 +201,13 @@ def crash_breakdown(records: pd.DataFrame) -> dict[str, float]:
     return {kind: 100.0 * float(counts.get(kind, 0)) / len(records) for kind in CRASH_KINDS}
 
 
-def task_fit(policy: Policy, tasks: Sequence[TaskConfig]) -> list[str]:
+def task_fit(policy: Policy, tasks: Sequence[TaskConfig], cross_task: bool = False) -> list[str]:
     """Check a trained policy against the tasks it is asked to play.
 
     A network reads 4 * (num_p + num_e) numbers per drone and pools the evaders, so a
-    different pursuer count is a different observation layout: ConfigError. Another
-    evader count or another task of the same shape plays, with a note (returned) saying so.
+    different pursuer count is a different observation layout: ConfigError. Another task
+    of the same shape is refused (ConfigError naming both tasks) unless ``cross_task``
+    asks for it; then it plays, with a note (returned) saying so.
     """
     trained_on = getattr(policy, "task", "")
     num_p, num_e = getattr(policy, "num_p", None), getattr(policy, "num_e", None)
@@ -146,6 +221,12 @@ def task_fit(policy: Policy, tasks: Sequence[TaskConfig]) -> list[str]:
                 "--task",
                 f"{policy.name} was trained on {trained_on} ({num_p} pursuers): its observation layout does not fit "
                 f"{task.name} ({players.num_p} pursuers)",
+            )
+        if task.name != trained_on and not cross_task:
+            raise ConfigError(
+                "--task",
+                f"{policy.name} was trained on {trained_on}, not on {task.name}: a cross-task evaluation must be "
+                "asked for (--cross-task)",
             )
         if players.num_e != num_e or task.name != trained_on:
             notes.append(
@@ -244,12 +325,17 @@ def evaluate(
     episodes: int = 500,
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
+    cross_task: bool = False,
 ) -> Evaluation:
-    """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated."""
+    """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated.
+
+    A learner trained on another task is refused (ConfigError) unless ``cross_task``.
+    """
     import pandas as pd
 
     cfg = load_task(task)
-    zoo = load_zoo(zoo) if isinstance(zoo, str) else zoo
+    task_fit(learner, [cfg], cross_task)
+    zoo = (load_zoo(zoo) if isinstance(zoo, str) else zoo).resolve(cfg)
     partners = zoo.policies()
     records = pd.concat(
         [run_episodes(learner, cfg, partners, episodes, seed=s, on_progress=on_progress) for s in seeds],
@@ -257,8 +343,21 @@ def evaluate(
     )
     per_seed = pd.DataFrame([{"seed": s, **metrics(g)} for s, g in records.groupby("seed")]).set_index("seed")
     return Evaluation(
-        task=cfg.name, zoo=zoo.name, learner=getattr(learner, "name", "learner"), per_seed=per_seed, records=records
+        task=cfg.name,
+        zoo=zoo.name,
+        learner=getattr(learner, "name", "learner"),
+        per_seed=per_seed,
+        records=records,
+        zoo_version=zoo.version if _is_shipped(zoo) else "",
+        cross_task=tuple(zoo.cross_task()),
     )
+
+
+def _is_shipped(zoo: Zoo) -> bool:
+    """Whether ``zoo`` is one of the manifest's documents (a user's own zoo has no manifest version)."""
+    from atdrone.policies.manifest import POOLS, ZOOS
+
+    return zoo.name in ZOOS or zoo.name in POOLS
 
 
 @dataclass(frozen=True)
@@ -278,6 +377,7 @@ def evaluate_grid(
     episodes: int = 500,
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
+    cross_task: bool = False,
 ) -> list[GridCell]:
     """Evaluate ``learner`` on every task x zoo (row-major: tasks outer, zoos inner).
 
@@ -287,10 +387,10 @@ def evaluate_grid(
     loaded = [load_zoo(z) if isinstance(z, str) else z for z in zoos]
     cells = []
     for cfg in cfgs:
-        for zoo in loaded:
+        for zoo in (z.resolve(cfg) for z in loaded):
             if zoo.missing:
                 cells.append(GridCell(cfg.name, zoo.name, None, tuple(zoo.missing)))
             else:
-                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress)
+                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress, cross_task=cross_task)
                 cells.append(GridCell(cfg.name, zoo.name, result))
     return cells

@@ -1,7 +1,9 @@
 """Evaluation results as the paper lays them out: a text table, a JSON summary and a CSV of episodes.
 
 The table has a row block per task (one line per metric) and a column per zoo, each
-cell ``mean ± std`` over seeds; a zoo with missing members shows them instead. The
+cell the value over all episodes and its 95 % confidence interval over episodes
+(``73.0 [69.0, 76.7]``), with several seeds also the interval over the seeds' values;
+a zoo with missing members shows them instead. The
 JSON holds, per cell, the aggregated summary and the per-seed metrics (NaN, e.g. AST
 without a success, is written as null); the CSV holds every episode record. Both
 files are written atomically.
@@ -24,20 +26,35 @@ from atdrone.teams.evaluation import METRICS, GridCell
 
 UNITS = {"SUC": "%", "COL": "%", "AST": "steps", "REW": ""}
 DECIMALS = {"SUC": 1, "COL": 1, "AST": 1, "REW": 2}
+SEEDS_NOTE = "; seeds [95 % CI over the seeds' values]"
 
 
 def _cell_lines(cell: GridCell) -> list[str]:
     if cell.evaluation is None:
         return [f"missing: {', '.join(cell.missing)}"] + [""] * (len(METRICS) - 1)
-    mean, std = cell.evaluation.mean, cell.evaluation.std
+    value, interval, over_seeds = cell.evaluation.pooled, cell.evaluation.interval, cell.evaluation.seed_interval
     lines = []
     for m in METRICS:
-        if math.isnan(mean[m]):
+        if math.isnan(value[m]):
             lines.append("n/a")
-        else:
-            d = DECIMALS[m]
-            lines.append(f"{mean[m]:.{d}f} ± {std[m]:.{d}f}")
+            continue
+        text = f"{_number(value[m], m)} {_bounds(interval[m], m)}"
+        if over_seeds is not None:
+            text += f"; seeds {_bounds(over_seeds[m], m)}"
+        lines.append(text)
     return lines
+
+
+def _number(value: float, metric: str) -> str:
+    return f"{value:.{DECIMALS[metric]}f}"
+
+
+def _bounds(interval: tuple[float, float], metric: str) -> str:
+    """``[low, high]``, or ``[n/a]`` when too few values give no interval (one successful episode's AST)."""
+    low, high = interval
+    if math.isnan(low) or math.isnan(high):
+        return "[n/a]"
+    return f"[{_number(low, metric)}, {_number(high, metric)}]"
 
 
 def format_table(cells: Sequence[GridCell], learner: str, episodes: int, seeds: Sequence[int]) -> str:
@@ -52,7 +69,7 @@ def format_table(cells: Sequence[GridCell], learner: str, episodes: int, seeds: 
     seed_text = ", ".join(map(str, seeds))
     out = [
         f"{learner}: {episodes} episodes per seed, {len(seeds)} seed{'s' if len(seeds) != 1 else ''} ({seed_text});"
-        " mean ± std over seeds",
+        f" value over all episodes [95 % CI over episodes]{SEEDS_NOTE if len(seeds) > 1 else ''}",
         "",
         "  ".join([f"{'task':<{task_w}}", f"{'metric':<{metric_w}}", *(f"{z:<{zoo_w[z]}}" for z in zoos)]).rstrip(),
         "  ".join(["-" * task_w, "-" * metric_w, *("-" * zoo_w[z] for z in zoos)]),
