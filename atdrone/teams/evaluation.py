@@ -94,8 +94,6 @@ class Evaluation:
     learner: str
     per_seed: pd.DataFrame  # index seed, columns METRICS
     records: pd.DataFrame  # one row per episode
-    zoo_version: str = ""  # the zoo manifest's version of the task's zoos ("" for a zoo it does not list)
-    cross_task: tuple[str, ...] = ()  # partners trained on another task (``name@task``), played on purpose
 
     @property
     def mean(self) -> dict[str, float]:
@@ -124,9 +122,6 @@ class Evaluation:
 
     def summary(self) -> dict[str, object]:
         row: dict[str, object] = {"task": self.task, "zoo": self.zoo, "learner": self.learner}
-        row["zoo_version"] = self.zoo_version
-        if self.cross_task:
-            row["cross_task_partners"] = list(self.cross_task)
         row["episodes"] = len(self.records)
         row["seeds"] = len(self.per_seed)
         interval, over_seeds = self.interval, self.seed_interval
@@ -201,13 +196,12 @@ def crash_breakdown(records: pd.DataFrame) -> dict[str, float]:
     return {kind: 100.0 * float(counts.get(kind, 0)) / len(records) for kind in CRASH_KINDS}
 
 
-def task_fit(policy: Policy, tasks: Sequence[TaskConfig], cross_task: bool = False) -> list[str]:
+def task_fit(policy: Policy, tasks: Sequence[TaskConfig]) -> list[str]:
     """Check a trained policy against the tasks it is asked to play.
 
     A network reads 4 * (num_p + num_e) numbers per drone and pools the evaders, so a
-    different pursuer count is a different observation layout: ConfigError. Another task
-    of the same shape is refused (ConfigError naming both tasks) unless ``cross_task``
-    asks for it; then it plays, with a note (returned) saying so.
+    different pursuer count is a different observation layout: ConfigError. Another
+    evader count or another task of the same shape plays, with a note (returned) saying so.
     """
     trained_on = getattr(policy, "task", "")
     num_p, num_e = getattr(policy, "num_p", None), getattr(policy, "num_e", None)
@@ -221,12 +215,6 @@ def task_fit(policy: Policy, tasks: Sequence[TaskConfig], cross_task: bool = Fal
                 "--task",
                 f"{policy.name} was trained on {trained_on} ({num_p} pursuers): its observation layout does not fit "
                 f"{task.name} ({players.num_p} pursuers)",
-            )
-        if task.name != trained_on and not cross_task:
-            raise ConfigError(
-                "--task",
-                f"{policy.name} was trained on {trained_on}, not on {task.name}: a cross-task evaluation must be "
-                "asked for (--cross-task)",
             )
         if players.num_e != num_e or task.name != trained_on:
             notes.append(
@@ -325,17 +313,12 @@ def evaluate(
     episodes: int = 500,
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
-    cross_task: bool = False,
 ) -> Evaluation:
-    """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated.
-
-    A learner trained on another task is refused (ConfigError) unless ``cross_task``.
-    """
+    """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated."""
     import pandas as pd
 
     cfg = load_task(task)
-    task_fit(learner, [cfg], cross_task)
-    zoo = (load_zoo(zoo) if isinstance(zoo, str) else zoo).resolve(cfg)
+    zoo = load_zoo(zoo) if isinstance(zoo, str) else zoo
     partners = zoo.policies()
     records = pd.concat(
         [run_episodes(learner, cfg, partners, episodes, seed=s, on_progress=on_progress) for s in seeds],
@@ -343,21 +326,8 @@ def evaluate(
     )
     per_seed = pd.DataFrame([{"seed": s, **metrics(g)} for s, g in records.groupby("seed")]).set_index("seed")
     return Evaluation(
-        task=cfg.name,
-        zoo=zoo.name,
-        learner=getattr(learner, "name", "learner"),
-        per_seed=per_seed,
-        records=records,
-        zoo_version=zoo.version if _is_shipped(zoo) else "",
-        cross_task=tuple(zoo.cross_task()),
+        task=cfg.name, zoo=zoo.name, learner=getattr(learner, "name", "learner"), per_seed=per_seed, records=records
     )
-
-
-def _is_shipped(zoo: Zoo) -> bool:
-    """Whether ``zoo`` is one of the manifest's documents (a user's own zoo has no manifest version)."""
-    from atdrone.policies.manifest import POOLS, ZOOS
-
-    return zoo.name in ZOOS or zoo.name in POOLS
 
 
 @dataclass(frozen=True)
@@ -377,7 +347,6 @@ def evaluate_grid(
     episodes: int = 500,
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
-    cross_task: bool = False,
 ) -> list[GridCell]:
     """Evaluate ``learner`` on every task x zoo (row-major: tasks outer, zoos inner).
 
@@ -387,10 +356,10 @@ def evaluate_grid(
     loaded = [load_zoo(z) if isinstance(z, str) else z for z in zoos]
     cells = []
     for cfg in cfgs:
-        for zoo in (z.resolve(cfg) for z in loaded):
+        for zoo in loaded:
             if zoo.missing:
                 cells.append(GridCell(cfg.name, zoo.name, None, tuple(zoo.missing)))
             else:
-                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress, cross_task=cross_task)
+                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress)
                 cells.append(GridCell(cfg.name, zoo.name, result))
     return cells
