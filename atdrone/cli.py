@@ -25,13 +25,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from atdrone.cli_registry import add_member_location, add_registry, run_registry
 from atdrone.config import TASK_NAMES, ConfigError, read_json
 from atdrone.errors import UserError
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
 EXIT_INTERRUPTED = 130  # Ctrl-C
 POLICY_HELP = (
-    "greedy, vicsek, a member id (hola-g3-0), models:/NAME@ALIAS, weights:METHOD/TASK, a checkpoint PATH or ZOO:MEMBER"
+    "greedy, vicsek, a member id (hola-g3-0, or hola_quick/hola-g3-0 where several runs have it), models:/NAME@ALIAS, "
+    "weights:METHOD/TASK, a checkpoint PATH or ZOO:MEMBER"
 )
 
 
@@ -144,6 +146,7 @@ def add_render(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="GIF path, *.gif (default: <task>.gif)")
     p.add_argument("--png", type=Path, default=None, help="also save the first frame as this PNG, *.png")
     _add_episode_args(p)
+    add_member_location(p)
     return p
 
 
@@ -158,7 +161,7 @@ def run_render(args: argparse.Namespace) -> int:
         _output_file(args.out, (".gif",))
     if args.png is not None:
         _output_file(args.png, (".png",), "--png")
-    found = resolve(args.policy) if args.policy is not None else None
+    found = resolve(args.policy, db=args.db, run=args.run, runs_dir=args.runs_dir) if args.policy else None
     cfg = load_task(args.task or (found.task if found is not None and found.task else "4p2e5o"))
     zoo = load_zoo(args.zoo) if args.zoo is not None else None
     policy = found.policy() if found is not None else None
@@ -368,71 +371,14 @@ def _train_service(args: argparse.Namespace) -> int:
     return 0
 
 
-# -------------------------------------------------------------- registry
-def add_registry(subparsers: Any) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        "registry",
-        help="query the population registry (runs, members, cross-play, lineage, export)",
-        description="Read population registries (sqlite files) read-only, whether or not Ray is running. "
-        "The file is --db, else $ATDRONE_REGISTRY, else the registries under --runs-dir (runs/*/registry.db), "
-        "else ./registry.db. `runs` and `list` read every registry found; the other queries need exactly one.",
-    )
-    db_help = "registry file (default: $ATDRONE_REGISTRY, else found under --runs-dir)"
-    runs_help = "where to look for runs/*/registry.db without --db (default runs)"
-
-    def locations(q: argparse.ArgumentParser, db: Any, runs_dir: Any) -> None:
-        q.add_argument("--db", type=Path, default=db, help=db_help)
-        q.add_argument("--runs-dir", type=Path, default=runs_dir, help=runs_help)
-
-    locations(p, None, Path("runs"))
-    sub = p.add_subparsers(dest="registry_command", metavar="QUERY", required=True)
-
-    def query(name: str, help: str) -> argparse.ArgumentParser:
-        q = sub.add_parser(name, help=help, description=help)
-        locations(q, argparse.SUPPRESS, argparse.SUPPRESS)  # also accepted after QUERY
-        return q
-
-    formats = ("table", "csv", "json")
-    q = query("runs", "the registries found: run, algorithm, task, generations, members, best member")
-    q.add_argument("--format", choices=formats, default="table", help="table (default), csv or json")
-    q = query("list", "the members, optionally filtered: a compact table fitted to the terminal")
-    q.add_argument("--run", default=None, help="only this run")
-    q.add_argument("--task", default=None, help="only this task")
-    q.add_argument("--status", default=None, help="only this status (active, retired, missing)")
-    q.add_argument("--columns", default=None, help="comma-separated member fields or metric keys, e.g. id,zoo1/SUC")
-    q.add_argument("--format", choices=formats, default="table", help="table (default), csv or json (nothing cut)")
-    query("show", "every field of one member, in full").add_argument(
-        "id", metavar="MEMBER", help="a member id, a models:/ URI or a member's checkpoint file"
-    )
-    q = query("crossplay", "the member x member matrix of a metric, averaged over matches")
-    q.add_argument("--task", default=None, help="only matches on this task")
-    q.add_argument("--metric", default="SUC", help="SUC (default), COL, AST or REW")
-    query("lineage", "a member and all its ancestors").add_argument("id", help="member id")
-    q = query("export", "write a table to CSV or Parquet")
-    q.add_argument("--format", choices=("csv", "parquet"), default="csv", help="file format (default csv)")
-    tables = ("members", "matches", "generations")
-    q.add_argument("--table", choices=tables, default="members", help="which table (default members)")
-    q.add_argument("--out", type=Path, required=True, help="output file")
-    return p
-
-
-def run_registry(args: argparse.Namespace) -> int:
-    """Answer one registry query; a refused one (RegistryError, a missing file) reaches :func:`main` as one line."""
-    from atdrone.registry_view import answer
-
-    if args.registry_command == "export":
-        _output_file(args.out, (f".{args.format}",))
-    print(answer(args, warn=lambda message: print(f"atdrone registry: warning: {message}", file=sys.stderr)))
-    return 0
-
-
 # -------------------------------------------------------------- evaluate
 def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "evaluate",
         help="SUC / COL / AST / REW of a policy teamed with unseen zoo partners",
         description="Play --episodes episodes per seed of the policy in the task's learner slots with partners drawn "
-        "from the zoo; print SUC / COL / AST / REW (mean ± std over seeds) as a table (rows tasks, columns zoos) and "
+        "from the zoo; print SUC / COL / AST / REW (each with its 95 % confidence interval over episodes) as a table "
+        "(rows tasks, columns zoos) and "
         "write <out>/<policy>_<task>_<zoo>.json (summary and per-seed metrics) and .csv (every episode).",
     )
     p.add_argument("--policy", required=True, help=f"the learner: {POLICY_HELP}")
@@ -448,6 +394,7 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=_seed, nargs="+", default=[0], help="distinct evaluation seeds >= 0 (default: 0)")
     p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_member_location(p)
     return p
 
 
@@ -462,7 +409,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
     if len(set(args.seeds)) != len(args.seeds):
         raise UserError(f"--seeds: each seed once, got {args.seeds} (a repeated seed replays the same episodes)")
-    found = resolve(args.policy)
+    found = resolve(args.policy, db=args.db, run=args.run, runs_dir=args.runs_dir)
     task_arg = args.task or found.task or "4p2e1o"
     tasks = [load_task(t) for t in (TASK_NAMES if task_arg == "all" else [task_arg])]
     zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]

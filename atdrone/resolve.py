@@ -12,7 +12,9 @@ A name is tried as, in this order:
    match the manifest's);
 3. a checkpoint file (a path that exists);
 4. a member id of a population registry (``hola-g3-0``): ``--db`` when given, else every
-   registry under the runs folder (``runs/*/registry.db``);
+   registry under the runs folder (``runs/*/registry.db``). Every run numbers its members
+   the same way, so an id held by several runs is named with its run, ``hola_quick/hola-g3-0``
+   (or ``--run hola_quick``); the short id is enough where one run has it;
 5. a zoo member: ``ZOO:MEMBER`` (``zoo2:sp_high``) or a member name of the shipped zoos.
 
 :func:`resolve` returns a :class:`Resolved` (what the name was found as, its checkpoint
@@ -80,9 +82,19 @@ class Resolved:
 
 
 def resolve(
-    name: str | Path, *, db: Path | None = None, runs_dir: Path = Path("runs"), tracking_uri: str | None = None
+    name: str | Path,
+    *,
+    db: Path | None = None,
+    runs_dir: Path = Path("runs"),
+    tracking_uri: str | None = None,
+    run: str | None = None,
 ) -> Resolved:
-    """The policy ``name`` means (see the module docstring); PolicyNotFound listing what was tried."""
+    """The policy ``name`` means (see the module docstring); PolicyNotFound listing what was tried.
+
+    ``run`` limits the registries searched to that run's (:func:`registry_of_run`).
+    """
+    if run is not None:
+        db = registry_of_run(run, db, runs_dir)
     text = str(name).strip()
     if not text:
         raise PolicyNotFound("no policy given: name a rule (greedy, vicsek), a member id, a models:/ URI or a file")
@@ -131,8 +143,37 @@ def locate_one(db: Path | None, runs_dir: Path) -> Path:
     if not paths:
         raise RegistryError(_none_found(runs_dir))
     if len(paths) > 1:
-        raise RegistryError(f"several registries under {_dir(runs_dir)}: pass --db ({', '.join(map(str, paths))})")
+        raise RegistryError(
+            f"several registries under {_dir(runs_dir)}: pass --run RUN or --db FILE ({', '.join(map(str, paths))})"
+        )
     return paths[0]
+
+
+def registry_of_run(run: str, db: Path | None, runs_dir: Path) -> Path:
+    """The registry holding run ``run`` among those :func:`locate` finds; RegistryError naming the runs there are."""
+    paths = locate(db, runs_dir)
+    by_folder = [p for p in paths if p.parent.name == run]
+    if by_folder:
+        return by_folder[0]
+    runs: dict[str, Path] = {}
+    for path in paths:
+        try:
+            with Registry(path, create=False) as registry:
+                names = set(registry.members()["run"]) | set(registry.generations()["run"])
+        except (RegistryError, OSError):
+            continue
+        runs.update({str(name): path for name in names})
+    if run in runs:
+        return runs[run]
+    known = ", ".join(sorted(runs)) or "none"
+    where = f"--db {db}" if db is not None else f"{_dir(runs_dir)}{REGISTRY_GLOB}"
+    raise RegistryError(f"no run {run!r} in {where} (runs there: {known})")
+
+
+def split_member_id(name: str) -> tuple[str | None, str]:
+    """``RUN/ID`` as (RUN, ID); a plain id as (None, ID)."""
+    run, sep, short = name.rpartition("/")
+    return (run, short) if sep and run and short else (None, name)
 
 
 def _none_found(runs_dir: Path) -> str:
@@ -270,7 +311,16 @@ def find_member(member_id: str, db: Path | None = None, runs_dir: Path = Path("r
 
 
 def _find_member(member_id: str, db: Path | None, runs_dir: Path) -> tuple[dict[str, Any] | None, Path | None, str]:
-    """The member, its registry and (when not found) where it was looked for; several matches are refused."""
+    """The member, its registry and (when not found) where it was looked for; several matches are refused.
+
+    ``member_id`` is an id (``hola-g3-0``) or a run-qualified one (``hola_quick/hola-g3-0``).
+    """
+    run, short = split_member_id(member_id)
+    if run is not None:
+        try:
+            db = registry_of_run(run, db, runs_dir)
+        except RegistryError as exc:
+            return None, None, str(exc).removeprefix("no ")
     paths = locate(db, runs_dir)
     if not paths:
         return None, None, f"any registry (none under {_dir(runs_dir)}{REGISTRY_GLOB}; pass --db FILE)"
@@ -278,7 +328,9 @@ def _find_member(member_id: str, db: Path | None, runs_dir: Path) -> tuple[dict[
     for path in paths:
         try:
             with Registry(path, create=False) as registry:
-                hits.append((registry.member(member_id), path))
+                found = registry.member(short)
+                if run is None or found["run"] == run:
+                    hits.append((found, path))
         except KeyError:
             continue
         except (RegistryError, OSError):  # a damaged registry beside good ones does not hide their members
@@ -286,8 +338,9 @@ def _find_member(member_id: str, db: Path | None, runs_dir: Path) -> tuple[dict[
                 raise
             continue
     if len(hits) > 1:
+        names = ", ".join(f"{m['run']}/{short}" for m, _ in hits)
         raise PolicyNotFound(
-            f"member {member_id!r} is in several registries ({', '.join(str(p) for _, p in hits)}): pass --db"
+            f"member {member_id!r} is in several runs: name one as {names} (or pass --run RUN or --db FILE)"
         )
     if hits:
         return hits[0][0], hits[0][1], ""

@@ -76,6 +76,7 @@ class Tracker:
 
     def __init__(self, uri: str | None = None) -> None:
         os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")  # nothing leaves this machine
+        os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # no download bars in a run's output
         import mlflow
 
         logging.getLogger("alembic").setLevel(logging.WARNING)
@@ -226,10 +227,11 @@ class Tracker:
         Nothing is pickled: the version's source is the project's own checkpoint file
         (JSON header + safetensors, digest-checked when loaded). ``score`` (e.g. the
         best member's final-zoo SUC) is kept as the version's ``score`` tag, and the
-        alias ``champion`` moves to the best-scoring version of all runs registered
-        under ``name``. Returns the version number: the active run's version already
-        registered with the same ``member`` tag when there is one (a resumed run
-        registering again), else a new one.
+        alias ``champion`` moves to the best-scoring version registered under ``name`` by runs
+        of the same name (the ``run`` tag; all versions when none has one), and never to
+        another run's: a model whose champion is another run's keeps it. Returns the version
+        number: the active run's version already registered with the same ``member`` tag when
+        there is one (a resumed run registering again), else a new one.
         """
         path = Path(checkpoint)
         self.mlflow.log_artifact(str(path), artifact_path="model")
@@ -250,12 +252,20 @@ class Tracker:
             if v.run_id == active.info.run_id and v.tags.get("member") == info.get("member")
         ]
         version = mine[0] if mine else client.create_model_version(name, source, run_id=active.info.run_id, tags=info)
-        best = max(
-            client.search_model_versions(f"name = '{name}'"),
-            key=lambda v: (float(v.tags.get("score", "-inf")), int(v.version)),
-        )
-        client.set_registered_model_alias(name, CHAMPION, best.version)
+        holder = self.champion_version(name)
+        held = client.get_model_version(name, holder).tags.get("run") if holder is not None else info.get("run")
+        if held == info.get("run"):  # another run's champion stays where it is
+            own = [v for v in client.search_model_versions(f"name = '{name}'") if v.tags.get("run") == held]
+            best = max(own, key=lambda v: (float(v.tags.get("score", "-inf")), int(v.version)))
+            client.set_registered_model_alias(name, CHAMPION, best.version)
         return str(version.version)
+
+    def champion_version(self, name: str) -> str | None:
+        """The version of model ``name`` the alias ``champion`` points at (None when it has none)."""
+        try:
+            return str(self.mlflow.MlflowClient().get_model_version_by_alias(name, CHAMPION).version)
+        except Exception:  # MLflow raises its own exception for a model or alias that does not exist
+            return None
 
 
 def _experiment_artifacts(uri: str, name: str) -> str | None:
@@ -273,6 +283,7 @@ def model_checkpoint(uri: str, tracking: str | None = None, dst: str | Path | No
     the model when it, its alias or its file is missing.
     """
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one file: no bar on a command's output
     import mlflow
 
     if not uri.startswith("models:/"):

@@ -640,6 +640,88 @@ def test_show_prints_every_field_in_full(registry: Registry, capsys: pytest.Capt
     assert "  zoo1/SUC: 31.25" in metric_lines and f"  train/metric_001: {1 / 7}" in metric_lines
 
 
+def test_list_sorts_by_any_column_with_missing_values_last(
+    registry: Registry, capsys: pytest.CaptureFixture[str]
+) -> None:
+    first, second, child = _population(registry)  # zoo1/SUC: 20.5, none, 31.25
+    base = ["registry", "--db", str(registry.path), "list", "--columns", "id", "--format", "csv"]
+    for extra, expected in (([], [first, child, second]), (["--desc"], [child, first, second])):
+        assert main([*base, "--sort", "zoo1/SUC", *extra]) == 0  # a key outside --columns still orders the rows
+        assert capsys.readouterr().out.split() == ["id", *expected]
+    assert main(["registry", "--db", str(registry.path), "list", "--sort", "id", "--desc"]) == 0
+    assert [line.split()[0] for line in capsys.readouterr().out.splitlines()[1:]] == sorted(
+        [first, second, child], reverse=True
+    )
+    assert main([*base, "--sort", "wins"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown column wins" in err
+
+
+def test_csv_from_list_and_export_is_tidy_one_column_per_metric(
+    registry: Registry, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import csv
+    import io
+
+    ids = _population(registry)
+    assert main(["registry", "--db", str(registry.path), "list", "--format", "csv"]) == 0
+    listed = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    out = tmp_path / "members.csv"
+    assert main(["registry", "--db", str(registry.path), "export", "--out", str(out)]) == 0
+    exported = list(csv.DictReader(out.open()))
+    for rows in (listed, exported):
+        assert [r["id"] for r in rows] == ids and "metrics" not in rows[0]
+        assert {"run", "generation", "parents", "checkpoint", "sha256", "tags", "eta", "zoo2/COL"} <= set(rows[0])
+        assert len([k for k in rows[0] if k.startswith("train/")]) == 200
+        assert (rows[0]["zoo1/SUC"], rows[2]["zoo2/COL"], rows[1]["zoo1/SUC"]) == ("20.5", "55.5", "")
+        assert float(rows[2]["train/metric_007"]) == 1.0
+
+
+def test_matches_lists_the_teams_filtered_by_member_and_sorted(
+    played: tuple[Registry, str, str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    import csv
+    import io
+
+    registry, a, b, c = played
+    base = ["registry", "--db", str(registry.path), "matches", "--format", "csv"]
+    assert main(base) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert [r["id"] for r in rows] == ["1", "2", "3", "4", "5"]
+    assert rows[3]["team"] == f"{a},{b},{c},{c}" and rows[2]["seeds"] == "0,1" and rows[2]["AST"] == ""
+    assert main([*base, "--member", c]) == 0
+    assert [r["id"] for r in csv.DictReader(io.StringIO(capsys.readouterr().out))] == ["4"]
+    assert main([*base, "--member", b, "--sort", "SUC", "--desc"]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert [float(r["SUC"]) for r in rows] == [90.0, 30.0, 10.0]
+    assert main(["registry", "--db", str(registry.path), "matches", "--task", "4p2e1o"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].split()[:4] == ["5", "hola-quick", "1", "4p2e1o"]
+
+
+def test_show_says_what_a_member_trained_against_and_its_budget(
+    registry: Registry, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from atdrone.models.checkpoint import save_checkpoint
+    from atdrone.models.networks import ActorCritic, NetConfig
+
+    partners = {
+        "kind": "Profiles",
+        "members": ["p0", "p1", "p2"],
+        "profiles": ["p0|p1", "p1|p2"],
+        "probs": [0.75, 0.25],
+    }
+    path = tmp_path / "m.pt"
+    header = {"task": TASK, "num_p": 4, "num_e": 2, "partners": partners, "step": 98_304, "seed": 3}
+    save_checkpoint(path, ActorCritic(NetConfig(entity_dim=8, hidden=16)), header)
+    member = registry.add_checkpoint(path, run="r", generation=2, member_id="hola-g2-0")
+    registry.add_match([member, member, "p0", "p1"], TASK, "r", 2, [0], 12, _metrics(50.0))
+    registry.add_match(["p0", "p0", "p1", "p1"], TASK, "r", 2, [0], 40, _metrics(50.0))
+    assert main(["registry", "--db", str(registry.path), "show", member]) == 0
+    out = capsys.readouterr().out
+    assert "trained against:\n  kind: Profiles\n  profiles: p0|p1 (0.75), p1|p2 (0.25)\n  members: p0, p1, p2\n" in out
+    assert "budget:\n  training env steps: 98,304 (seed 3)\n  evaluation: 1 match(es), 12 episodes" in out
+
+
 # ---------------------------------------------------------------- discovery
 def _runs_folder(root: Path) -> tuple[Path, Path]:
     """runs/hola_quick (zoo metrics, two finished generations) and runs/sp_base (none): two registries."""
@@ -695,7 +777,8 @@ def test_without_db_list_reads_every_registry_and_the_others_need_one(
     for argv in (["crossplay"], ["export", "--out", "m.csv"]):
         assert main(["registry", *argv]) == 2
         assert capsys.readouterr().err == (
-            f"atdrone registry: error: several registries under runs/: pass --db ({hola.relative_to(in_tmp)}, "
+            f"atdrone registry: error: several registries under runs/: pass --run RUN or --db FILE "
+            f"({hola.relative_to(in_tmp)}, "
             f"{sp.relative_to(in_tmp)})\n"
         )
     # a member id is looked up in every registry found: the one that holds it answers

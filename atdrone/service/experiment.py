@@ -137,8 +137,8 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
     if not isinstance(algorithm, str) or algorithm not in ALGORITHMS:
         raise ConfigError("algorithm", f"must be one of {sorted(ALGORITHMS)}, got {algorithm!r}")
     base["section"] = base.pop(algorithm, {})
-    if isinstance(base.get("name"), str) and overrides.get("experiment") is None:
-        overrides["experiment"] = base.get("experiment") or base["name"]
+    if isinstance(base.get("name"), str) and overrides.get("experiment") is None:  # --name renames the experiment
+        overrides["experiment"] = base.get("experiment") or overrides.get("name") or base["name"]
     cfg: ExperimentConfig = load_config(ExperimentConfig, base, "experiments", **overrides)
     _check_settings(cfg)
     check_task_field(cfg.task)
