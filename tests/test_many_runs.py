@@ -56,6 +56,7 @@ def _ok(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     code = main(argv)
     out, err = capsys.readouterr()
     assert code == 0, f"atdrone {' '.join(argv)}: {err}"
+    assert "Downloading artifacts" not in err and "%|" not in err, err  # no library progress bars
     return out
 
 

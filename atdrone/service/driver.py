@@ -348,7 +348,8 @@ def _await_generation(coordinator: Any, name: str, g: int, progress: bool, every
         if not progress:
             continue
         line = ray.get(coordinator.progress.remote())
-        if line and (line.split(":")[0] != last.split(":")[0] or time.monotonic() - shown >= every_s):
+        new_kind = line.split(":")[0] != last.split(":")[0]  # training, evaluating, the zoo: said at once
+        if line and line != last and (new_kind or time.monotonic() - shown >= every_s):  # never a line twice
             print(f"[{name}] generation {g}: {line}", flush=True)
             last, shown = line, time.monotonic()
 
