@@ -230,6 +230,9 @@ def add_train(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--name", default=None, help="override the run name")
     p.add_argument("--out-dir", default=None, help="override where runs are written (default runs/)")
     p.add_argument("--no-progress", action="store_true", help="no progress output")
+    p.add_argument(
+        "--tracking-uri", default=None, help="MLflow tracking URI (default MLFLOW_TRACKING_URI or ./mlflow.db)"
+    )
     local = p.add_argument_group("local training (configs/train)")
     local.add_argument("--total-env-steps", type=_positive_int, default=None, help="override the step budget")
     local.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time")
@@ -254,6 +257,12 @@ def run_train(args: argparse.Namespace) -> int:
     document = read_json(args.config)
     if not isinstance(document, dict):
         raise ConfigError(None, f"{args.config} must hold a JSON object (a train or experiment config)")
+    if args.tracking_uri:  # the trainer, the service's driver and the summary all read the one in force
+        import os
+
+        from atdrone.tracking import tracking_uri
+
+        os.environ["MLFLOW_TRACKING_URI"] = tracking_uri(args.tracking_uri)
     service = "algorithm" in document
     try:
         return _train_service(args) if service else _train_local(args)
@@ -394,6 +403,12 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=_seed, nargs="+", default=[0], help="distinct evaluation seeds >= 0 (default: 0)")
     p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--tracking-uri",
+        default=None,
+        help="also record the result as a run of the MLflow experiment 'evaluate' in this store (e.g. "
+        "sqlite:///mlflow.db)",
+    )
     add_member_location(p)
     return p
 
@@ -439,6 +454,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
                 json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
     print(format_table(cells, args.policy, args.episodes, args.seeds))
     print(f"\nwrote {json_path} and {csv_path}")
+    if args.tracking_uri:
+        from atdrone.teams.reports import report_document
+        from atdrone.tracking import record_evaluation
+
+        document = report_document(cells, args.policy, args.episodes, args.seeds)
+        run_id, link = record_evaluation(document, [json_path, csv_path], stem, args.tracking_uri)
+        print(f"MLflow run {run_id} (experiment 'evaluate'): {link}")
     return 0
 
 

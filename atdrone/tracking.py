@@ -13,7 +13,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -350,6 +350,55 @@ def ui_link(experiment: str, uri: str | None = None) -> str:
     found = mlflow.MlflowClient(tracking_uri=tracking_uri(uri)).get_experiment_by_name(experiment)
     page = f"#/experiments/{found.experiment_id}" if found is not None else "#/experiments"
     return f"{UI_ADDRESS}/{page}?workflowType=machine_learning"
+
+
+def ui_run_link(run_id: str, uri: str | None = None) -> str:
+    """The MLflow UI address of one run, in the model-training view (see :func:`ui_link`)."""
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    import mlflow
+
+    experiment = mlflow.MlflowClient(tracking_uri=tracking_uri(uri)).get_run(run_id).info.experiment_id
+    return f"{UI_ADDRESS}/#/experiments/{experiment}/runs/{run_id}?workflowType=machine_learning"
+
+
+def ui_model_link(name: str) -> str:
+    """The MLflow UI address of a registered model's page, in the model-training view."""
+    return f"{UI_ADDRESS}/#/models/{name}?workflowType=machine_learning"
+
+
+EVALUATE_EXPERIMENT = "evaluate"  # where `atdrone evaluate --tracking-uri` records its runs
+
+
+def record_evaluation(
+    document: Mapping[str, Any], files: Sequence[Path], run_name: str, uri: str | None = None
+) -> tuple[str, str]:
+    """Record an evaluation report (:func:`atdrone.teams.reports.report_document`) as one MLflow run of the
+    experiment ``evaluate``: its settings as params, per cell ``<task>/<zoo>/<metric>`` with the bounds of
+    its 95 % interval over episodes (``..._ci95_low``, ``..._ci95_high``), the report ``files`` as
+    artifacts. Returns the run id and its UI link."""
+    tracker = Tracker(uri)
+    cells = [c for c in document["cells"] if c.get("status") == "ok"]
+    metrics: dict[str, float | None] = {}
+    for cell in cells:
+        summary = cell["summary"]
+        for m in ("SUC", "COL", "AST", "REW"):
+            key = f"{cell['task']}/{cell['zoo']}/{m}"
+            metrics[key] = summary.get(m)
+            low, high = summary.get(f"{m}_ci95") or (None, None)
+            metrics[f"{key}_ci95_low"], metrics[f"{key}_ci95_high"] = low, high
+    params = {
+        "policy": document["learner"],
+        "episodes_per_seed": document["episodes_per_seed"],
+        "seeds": ",".join(map(str, document["seeds"])),
+        "tasks": ",".join(dict.fromkeys(c["task"] for c in document["cells"])),
+        "zoos": ",".join(dict.fromkeys(c["zoo"] for c in document["cells"])),
+    }
+    with tracker.run(EVALUATE_EXPERIMENT, run_name, tags={"atdrone.policy": str(document["learner"])}) as run_id:
+        tracker.log_params(params)
+        tracker.log_metrics({k: float(v) for k, v in metrics.items() if v is not None}, step=0)
+        for path in files:
+            tracker.log_artifact(path)
+    return run_id, ui_run_link(run_id, tracker.uri)
 
 
 def ui_hint(experiment: str, uri: str | None = None) -> str:

@@ -154,7 +154,7 @@ def test_evaluate_render_and_show_take_a_member_id(
 
 
 def test_evaluate_prints_a_confidence_interval_over_episodes_not_a_std_of_one_value(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], mlflow_store: Callable[[Path], str]
 ) -> None:
     import math
     import re
@@ -162,7 +162,8 @@ def test_evaluate_prints_a_confidence_interval_over_episodes_not_a_std_of_one_va
     import pandas as pd
 
     argv = ["evaluate", "--policy", "greedy", "--task", "4p2e1o", "--zoo", "zoo1", "--episodes", "40"]
-    assert main([*argv, "--no-progress", "--out-dir", str(tmp_path)]) == 0
+    store = mlflow_store(tmp_path / "store" / "mlflow.db")
+    assert main([*argv, "--no-progress", "--out-dir", str(tmp_path), "--tracking-uri", store]) == 0
     out = capsys.readouterr().out
     assert "±" not in out and "std" not in out and "seeds [" not in out  # one seed: no spread over seeds
     value, low, high = map(float, re.search(r"SUC %\s+([\d.]+) \[([\d.]+), ([\d.]+)\]", out).groups())
@@ -175,6 +176,19 @@ def test_evaluate_prints_a_confidence_interval_over_episodes_not_a_std_of_one_va
     assert (low, high) == (round(100 * (centre - half), 1), round(100 * (centre + half), 1))
     summary = json.loads((tmp_path / "greedy_4p2e1o_zoo1.json").read_text())["cells"][0]["summary"]
     assert summary["SUC_ci95"] == pytest.approx([100 * (centre - half), 100 * (centre + half)])
+    # --tracking-uri: the result is a run of the experiment "evaluate", the link opens it in the training view
+    import mlflow
+
+    client = mlflow.MlflowClient(store)
+    (run,) = client.search_runs([client.get_experiment_by_name("evaluate").experiment_id])
+    assert run.data.metrics["4p2e1o/zoo1/SUC"] == pytest.approx(100 * wins / n)
+    assert run.data.metrics["4p2e1o/zoo1/SUC_ci95_low"] == pytest.approx(100 * (centre - half))
+    assert run.data.params["policy"] == "greedy" and run.data.params["episodes_per_seed"] == "40"
+    assert {a.path for a in client.list_artifacts(run.info.run_id)} == {
+        "greedy_4p2e1o_zoo1.json",
+        "greedy_4p2e1o_zoo1.csv",
+    }
+    assert f"/runs/{run.info.run_id}?workflowType=machine_learning" in out
     # two seeds: the interval over the seeds' values as well
     assert main([*argv, "--seeds", "0", "1", "--no-progress", "--out-dir", str(tmp_path)]) == 0
     assert re.search(r"SUC %\s+[\d.]+ \[[\d.]+, [\d.]+\]; seeds \[-?[\d.]+, [\d.]+\]", capsys.readouterr().out)
@@ -256,6 +270,22 @@ def test_a_moved_run_directory_keeps_its_checkpoints(tmp_path: Path, monkeypatch
     with Registry(moved / "registry.db") as registry:  # a path outside the run directory is kept as given
         registry.update_member("hola-g3-0", checkpoint=SP_HIGH)
         assert registry.member("hola-g3-0")["checkpoint"] == str(SP_HIGH)
+
+
+def test_train_logs_to_the_tracking_uri_it_is_given(
+    tmp_path: Path, mlflow_store: Callable[[Path], str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    import mlflow
+
+    store = mlflow_store(tmp_path / "elsewhere" / "mlflow.db")
+    config = _train_config(tmp_path, total_env_steps=256, checkpoint_every=1000)
+    default = os.environ["MLFLOW_TRACKING_URI"]  # the store a run without --tracking-uri would log to
+    assert main(["train", str(config), "--tracking-uri", store, "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    found = mlflow.MlflowClient(store).get_experiment_by_name("ctrl_c")
+    assert found is not None and f"#/experiments/{found.experiment_id}?workflowType=machine_learning" in out
+    assert str(tmp_path / "elsewhere" / "mlflow.db") in out
+    assert mlflow.MlflowClient(default).get_experiment_by_name("ctrl_c") is None
 
 
 # ------------------------------------------------------------------ Ctrl-C
