@@ -93,6 +93,8 @@ class Bridge(Protocol):
 
     def arm(self, names: Sequence[str], timeout: float = 3.0) -> None: ...
 
+    def request_arming(self, names: Sequence[str]) -> None: ...
+
     def takeoff(self, names: Sequence[str], height: float, duration: float) -> None: ...
 
     def go_to(self, name: str, pos: np.ndarray, duration: float) -> None: ...
@@ -366,6 +368,11 @@ class CflibBridge:
             self._setpoints.pop(name, None)  # a setpoint posted before must not override the command
             self._commands.append((kind, fn))
         self._wake.set()
+
+    def request_arming(self, names: Sequence[str]) -> None:
+        """Queue an arming request (in order, before a takeoff queued after it; an armed drone ignores it)."""
+        for n in names:
+            self._queue(n, "arming", partial(self._cf[n].supervisor.send_arming_request, True))
 
     def takeoff(self, names: Sequence[str], height: float, duration: float) -> None:
         for n in names:

@@ -28,11 +28,16 @@ class Clock(Protocol):
 class ScaledClock:
     """``rate`` clock seconds per wall second, starting at 0 when made."""
 
-    def __init__(self, rate: float = 1.0) -> None:
+    def __init__(self, rate: float = 1.0, t0: float | None = None) -> None:
         if not rate > 0:
             raise ValueError(f"clock rate must be > 0, got {rate!r}")
         self.rate = float(rate)
-        self._t0 = time.perf_counter()
+        self._t0 = time.perf_counter() if t0 is None else t0  # perf_counter is one monotonic clock for every process
+
+    @property
+    def origin(self) -> float:
+        """The ``time.perf_counter()`` at which this clock read 0 (another process's clock can share it)."""
+        return self._t0
 
     def now(self) -> float:
         return (time.perf_counter() - self._t0) * self.rate
@@ -61,6 +66,7 @@ class Ticker:
         self.clock, self.period = clock, period
         self.next = clock.now()
         self.overruns = 0
+        self.late_by = 0.0  # clock seconds the last tick started after its scheduled time (a host pause)
         self._lock = threading.Lock()
 
     def wait(self) -> float:
@@ -68,6 +74,7 @@ class Ticker:
         and the schedule restarts from now (no burst of catch-up ticks)."""
         with self._lock:
             now = self.clock.now()
+            self.late_by = max(0.0, now - self.next)
             if now > self.next + self.period:
                 self.overruns += 1
                 self.next = now

@@ -36,12 +36,16 @@ from atdrone.deploy.shield import ShieldConfig
 ROLES = ("learner", "partner", "evader")
 FAULT_KINDS = (
     "mocap_dropout",
+    "mocap_freeze",
     "link_loss",
+    "link_dropout",
     "drift",
     "low_battery",
     "policy_stall",
     "loop_hang",
+    "host_pause",
     "exception",
+    "signal",
 )
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
@@ -103,7 +107,8 @@ class SimSettings:
     true_frame: how the simulated mocap system is really mounted (default: as ``frame`` says);
     yaw_deg: the drones' true yaw as placed on the floor (90: facing +y, as they should);
     radio_model: the drones are reached through the Crazyradio model (one shared dongle, a
-    one-packet queue, ~1000 packets/s) rather than straight over UDP.
+    one-packet queue, ~1000 packets/s) rather than straight over UDP; radio_loss: the probability
+    a radio try is lost, radio_retries: the tries more a lost one gets (the radio's automatic retries).
     """
 
     clock_rate: float = field(default=1.0, metadata=_check(_positive))
@@ -114,6 +119,8 @@ class SimSettings:
     lag: float = field(default=0.05, metadata=_check(_positive))
     yaw_deg: float = 90.0
     radio_model: bool = True
+    radio_loss: float = field(default=0.05, metadata=_check(lambda v: None if 0 <= v < 1 else "must be in [0, 1)"))
+    radio_retries: int = field(default=3, metadata=_check(_non_negative))
     battery_drain: float = field(default=0.002, metadata=_check(_non_negative))
     true_frame: FrameTransform | None = None
 
@@ -123,17 +130,35 @@ class Fault:
     """A fault injected on the sim backend at clock time ``at`` (seconds since the loop started).
 
     kind: mocap_dropout (``drone`` or the whole system when empty, for ``duration`` s),
-    link_loss (``drone``), drift (``drone`` pushed by ``accel`` m/s^2), low_battery
-    (``drone`` at ``volts``), policy_stall (the policy takes ``duration`` s), loop_hang
-    (the loop thread hangs ``duration`` s), exception (the loop raises).
+    mocap_freeze (frames keep arriving with ``drone``'s pose, or every body's when empty,
+    as it was, for ``duration`` s), link_loss (``drone``, for good), link_dropout
+    (``drone``'s link carries nothing either way for ``duration`` s), drift (``drone``
+    pushed by ``accel`` m/s^2), low_battery (``drone`` at ``volts``), policy_stall (the
+    policy takes ``duration`` s), loop_hang (the loop thread hangs ``duration`` s),
+    host_pause (the whole ground-station process is stopped, SIGSTOP, for ``duration``
+    wall seconds), exception (the loop raises), signal (the process gets ``signal``:
+    SIGINT or SIGTERM).
     """
 
-    kind: Literal["mocap_dropout", "link_loss", "drift", "low_battery", "policy_stall", "loop_hang", "exception"]
+    kind: Literal[
+        "mocap_dropout",
+        "mocap_freeze",
+        "link_loss",
+        "link_dropout",
+        "drift",
+        "low_battery",
+        "policy_stall",
+        "loop_hang",
+        "host_pause",
+        "exception",
+        "signal",
+    ]
     at: float = field(metadata=_check(_non_negative))
     drone: str = field(default="", metadata={"empty_ok": True})
     duration: float = field(default=1.0, metadata=_check(_non_negative))
     accel: tuple[float, float, float] = (0.5, 0.0, 0.0)
     volts: float = field(default=3.2, metadata=_check(_positive))
+    signal: Literal["SIGINT", "SIGTERM"] = "SIGINT"
 
 
 @dataclass(frozen=True)
@@ -251,7 +276,7 @@ def validate(cfg: DeployConfig) -> None:
     for i, f in enumerate(cfg.faults):
         if f.drone and f.drone not in names:
             raise ConfigError(f"faults[{i}].drone", f"no drone {f.drone!r} (drones: {', '.join(names)})")
-        if f.kind in ("link_loss", "drift", "low_battery") and not f.drone:
+        if f.kind in ("link_loss", "link_dropout", "drift", "low_battery") and not f.drone:
             raise ConfigError(f"faults[{i}].drone", f"a {f.kind} fault names its drone")
     lo, hi = cfg.shield.z_limits
     if not lo <= cfg.flight_height <= hi:

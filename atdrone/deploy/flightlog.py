@@ -325,6 +325,7 @@ def summarize(directory: Path) -> dict[str, Any]:
         **separation(_physical(flight, meta)),
         "ground_speed_median": ground_speed(flight),
         "ended_early": str(meta.get("ended_early", "")),
+        "endings": {str(k): str(v) for k, v in meta.get("endings", {}).items()},
         "episodes_flown": int(meta.get("episodes_flown", len(episodes))),
         "mocap_callback_errors": int(meta.get("mocap_callback_errors", 0)),
         "battery_min": {str(k): float(v) for k, v in battery.items()},
@@ -362,6 +363,7 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         ),
         f"  pursuers' median ground speed in policy legs: {_number(summary.get('ground_speed_median'), '.3f', ' m/s')}"
         + (f"; ENDED EARLY: {summary['ended_early']}" if summary.get("ended_early") else ""),
+        "  drones: " + (", ".join(f"{k} {v}" for k, v in summary.get("endings", {}).items()) or "-"),
         "  battery min: "
         + (", ".join(f"{k} {_number(v, '.2f', ' V')}" for k, v in summary["battery_min"].items()) or "-"),
     ]

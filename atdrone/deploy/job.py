@@ -2,7 +2,8 @@
 
 :func:`run_deploy` is what ``atdrone deploy CONFIG`` and ``jobs/deploy.py`` call:
 
-1. the backend: ``sim`` (a :class:`~atdrone.deploy.simfleet.SimFleet` on loopback UDP
+1. the backend: ``sim`` (a :class:`~atdrone.deploy.simfleet.SimFleet` in its own process
+   (:class:`~atdrone.deploy.simproc.FleetProcess`) on loopback UDP
    ports, :class:`~atdrone.deploy.mocap.SimMocap`, a scaled clock, the config's faults)
    or ``cflib`` (the configured radio URIs and a ``motioncapture`` source); both talk
    through the same :class:`~atdrone.deploy.bridge.CflibBridge`;
@@ -18,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import signal
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
@@ -69,6 +72,7 @@ class DeployResult:
     ended_early: str = ""
     episodes_flown: int = 0
     fleet: dict[str, dict[str, Any]] | None = None  # sim backend: per drone what the simulated firmware saw
+    endings: dict[str, str] | None = None  # per drone: landed, cut in the air at Z m (STATE), lost (...)
     t0: float = 0.0  # clock time the flight started (the faults' time origin)
 
 
@@ -132,7 +136,7 @@ def build_team(cfg: DeployConfig) -> tuple[Team, str]:
     name = cfg.member.id or path.stem
     if cfg.partners.members:
         return Team(learner, [policy_from_spec(m) for m in cfg.partners.members]), name
-    zoo = load_zoo(cfg.partners.zoo)
+    zoo = load_zoo(cfg.partners.zoo, task_of(cfg))
     if zoo.missing:
         raise DeployError(f"partners.zoo: zoo {zoo.name} is missing {', '.join(zoo.missing)}")
     pool = zoo.policies()
@@ -200,17 +204,22 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
     with ExitStack() as stack:
         mocap: MocapSource
         if cfg.backend == "sim":
-            from atdrone.deploy.simfleet import DroneDynamics, SimFleet
+            from atdrone.deploy.simdrone import DroneDynamics
+            from atdrone.deploy.simproc import FleetProcess
 
-            clock: Clock = ScaledClock(cfg.sim.clock_rate)
+            scaled = ScaledClock(cfg.sim.clock_rate)
+            clock: Clock = scaled
             fleet = stack.enter_context(
-                SimFleet(
+                FleetProcess(
                     [d.name for d in cfg.drones],
                     ground_positions(cfg, task, cfg.seed + 7919),
-                    clock,
+                    scaled,
                     DroneDynamics(lag=cfg.sim.lag, battery_drain=cfg.sim.battery_drain),
                     yaw=math.radians(cfg.sim.yaw_deg),
                     radio=cfg.sim.radio_model,
+                    radio_loss=cfg.sim.radio_loss,
+                    radio_retries=cfg.sim.radio_retries,
+                    seed=cfg.seed,
                 )
             )
             truth = fleet.truth
@@ -273,8 +282,12 @@ def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap
         fire: Callable[[], None]
         if f.kind == "mocap_dropout":
             fire = partial(_drop, mocap, clock, body[f.drone] if f.drone else None, f.duration)
+        elif f.kind == "mocap_freeze":
+            fire = partial(_freeze, mocap, clock, body[f.drone] if f.drone else None, f.duration)
         elif f.kind == "link_loss":
             fire = partial(fleet.cut_link, f.drone)
+        elif f.kind == "link_dropout":
+            fire = partial(fleet.cut_link, f.drone, f.duration)
         elif f.kind == "drift":
             fire = partial(fleet.push, f.drone, np.array(f.accel))
         elif f.kind == "low_battery":
@@ -283,6 +296,10 @@ def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap
             fire = partial(setattr, faults, "stall", f.duration)
         elif f.kind == "loop_hang":
             fire = partial(setattr, faults, "hang", f.duration)
+        elif f.kind == "host_pause":
+            fire = partial(_pause_process, f.duration)
+        elif f.kind == "signal":
+            fire = partial(os.kill, os.getpid(), getattr(signal, f.signal))
         else:  # exception
             fire = partial(setattr, faults, "raise_now", True)
         faults.add(f.at, f.drone, f.kind, fire)
@@ -290,6 +307,22 @@ def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap
 
 def _drop(mocap: SimMocap, clock: Clock, body: str | None, duration: float) -> None:
     mocap.drop(body, clock.now(), clock.now() + duration)
+
+
+def _freeze(mocap: SimMocap, clock: Clock, body: str | None, duration: float) -> None:
+    mocap.freeze(body, clock.now(), clock.now() + duration)
+
+
+def _pause_process(seconds: float) -> None:
+    """Stop this whole process for ``seconds`` wall seconds (SIGSTOP, then SIGCONT from a helper process), as a
+    host that deschedules the ground station would."""
+    import subprocess
+    import sys
+
+    code = f"import os, signal, time; os.kill({os.getpid()}, signal.SIGSTOP); time.sleep({seconds}); "
+    code += f"os.kill({os.getpid()}, signal.SIGCONT)"
+    helper = subprocess.Popen([sys.executable, "-S", "-c", code])
+    helper.wait()  # returns after the pause: this process was stopped meanwhile
 
 
 # ------------------------------------------------------------------ preflight
@@ -416,13 +449,15 @@ def _deploy(
         say(f"[deploy] arming and flying {cfg.episodes} episode(s)")
         started = time.perf_counter()
         log_dir = _log_dir(cfg)
-        flight.on_episode = partial(_write_rows, log, log_dir)  # the log so far, after every episode
+        # nothing heavy runs while drones fly: writing the log (pandas, Parquet) holds the interpreter for 0.2-0.4 s,
+        # past the dead-man limit of a scaled clock on a busy host; it is written once every drone is down
         flight.t0 = backend.clock.now()
         try:
             flight.run()  # lands every drone before it returns, whatever happened; never raises
         finally:
             log.overruns = flight.ticks.overruns
             log.meta.update(
+                endings=flight.ended,
                 ended_early=flight.aborted,
                 episodes_flown=flight.episodes_flown,
                 mocap_callback_errors=getattr(backend.mocap, "callback_errors", 0),
@@ -437,16 +472,13 @@ def _deploy(
     result = DeployResult(
         pre, True, log_dir, summary, run_id, sent=sent, ended_early=flight.aborted, episodes_flown=flight.episodes_flown
     )
-    result.fleet, result.t0 = fleet, t0
+    result.fleet, result.t0, result.endings = fleet, t0, dict(flight.ended)
+    say("[deploy] drones: " + ", ".join(f"{n} {e}" for n, e in flight.ended.items()))
     if flight.aborted:
         say(f"[deploy] flight ended early after {flight.episodes_flown}/{cfg.episodes} episode(s): {flight.aborted}")
     elif compare:
         result.gap = simulation_gap(cfg, task, team, summary)
     return result
-
-
-def _write_rows(log: FlightLog, directory: Path) -> None:
-    log.write_rows(directory)
 
 
 def _log_dir(cfg: DeployConfig) -> Path:
@@ -478,7 +510,7 @@ def simulation_gap(cfg: DeployConfig, task: TaskConfig, team: Team, flown: dict[
     else:
         from atdrone.policies.zoo import load_zoo
 
-        records = run_episodes(team.learner, task, load_zoo(cfg.partners.zoo).policies(), episodes, seed=cfg.seed)
+        records = run_episodes(team.learner, task, load_zoo(cfg.partners.zoo, task).policies(), episodes, seed=cfg.seed)
     sim = metrics(records)
     n_sim, n_fly = len(records), int(flown["episodes"])
     sim_ast_sd = (

@@ -30,14 +30,10 @@ from __future__ import annotations
 import concurrent.futures
 import gc
 import math
-import signal
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import replace
 from dataclasses import replace as dc_replace
-from typing import Any
 
 import numpy as np
 
@@ -45,8 +41,13 @@ from atdrone.config import TaskConfig
 from atdrone.deploy.bridge import Bridge
 from atdrone.deploy.clock import Clock, Ticker
 from atdrone.deploy.config import DeployConfig
+from atdrone.deploy.faults import FaultClock, InjectedFault, StopRequest
 from atdrone.deploy.flightlog import PAIR, FlightLog
-from atdrone.deploy.mocap import MocapSource, Pose
+from atdrone.deploy.landing import AIRBORNE, CLAMPS, Landing, cut_by_firmware
+from atdrone.deploy.links import LinkHealth, LinkView
+from atdrone.deploy.mocap import FROZEN_FRAMES, MocapSource, Pose
+from atdrone.deploy.reactions import Reaction, Verdict
+from atdrone.deploy.sequence import COLUMN_CLEAR, Sequencing
 from atdrone.deploy.shield import (
     HOLD_MARGIN,
     Action,
@@ -54,28 +55,23 @@ from atdrone.deploy.shield import (
     ShieldConfig,
     ShieldDecision,
     ShieldInput,
-    ellipsoid_distance,
     geofence,
-    obstacle_distance,
-    push_out_of_obstacles,
     shield,
 )
-from atdrone.deploy.transit import MARGIN, Transit, TransitBlocked, plan_transit, separated_spawn
-from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge, spawn
+from atdrone.deploy.team import PolicyRunner, Team
+from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge
 from atdrone.envs.evaders import EscapeParams
 from atdrone.envs.geometry import Geometry
 from atdrone.envs.kinematics import advance, turn
 from atdrone.envs.observation import Arena, Poses, observe
-from atdrone.policies.base import DroneBatch, Policy
+
+__all__ = ["COLUMN_CLEAR", "FaultClock", "Flight", "InjectedFault", "StopRequest", "Team", "advance_reference"]
 
 OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
 LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
-ARRIVED = 0.05  # m: a transit is over when every drone is this close to its target
-SPAWN_DRAWS = 5  # spawn draws tried before a blocked transit ends the flight
-COLUMN_CLEAR = 0.45  # m: no drone in the air this near (in x, y) a landed one that takes off
-AIRBORNE = ("taking_off", "flying", "landing")
 CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
-CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
+GROW_CAP = 1.0  # m: the most a drone without a valid pose is grown by (it lands or is stopped long before)
+MOVING = 0.05  # m/s: a drone commanded faster than this should show it (a pose that does not is frozen)
 
 
 def capture_reach(capture_range: float, shield_cfg: ShieldConfig) -> float:
@@ -109,132 +105,7 @@ def advance_reference(
     return new_heading, new_ref, (ref + new_ref) / 2, vel
 
 
-@dataclass
-class Team:
-    """The policies of one flight: the learner, and the partner policy of each partner slot this episode."""
-
-    learner: Policy
-    partners: list[Policy]
-    draw_partners: Callable[[np.random.Generator], list[Policy]] | None = None  # per episode (a zoo)
-
-    def new_episode(self, rng: np.random.Generator) -> None:
-        if self.draw_partners is not None:
-            self.partners = self.draw_partners(rng)
-        for p in [self.learner, *self.partners]:
-            p.reset(np.ones(1, dtype=bool))
-
-    def act(self, obs: np.ndarray, poses: Poses, learner_slots: np.ndarray, partner_slots: np.ndarray) -> np.ndarray:
-        """Actions (num_p,) of every pursuer slot from observations (1, num_p, obs_dim)."""
-        actions = np.zeros(obs.shape[1])
-        env = np.zeros(len(learner_slots), dtype=np.intp)
-        actions[learner_slots] = self.learner.act(DroneBatch(obs[0, learner_slots], env, learner_slots, poses))
-        for slot, policy in zip(partner_slots, self.partners, strict=True):
-            s = np.array([slot])
-            actions[slot] = policy.act(DroneBatch(obs[0, s], np.zeros(1, dtype=np.intp), s, poses))[0]
-        return actions
-
-
-@dataclass
-class FaultClock:
-    """Faults of the sim backend fired once their time comes (callables taking nothing)."""
-
-    pending: list[tuple[float, str, str, Callable[[], None]]] = field(default_factory=list)  # at, drone, kind, fire
-    stall: float = 0.0  # s the next policy step is stalled (a policy_stall fault; consumed once)
-    hang: float = 0.0  # s the loop thread hangs (a loop_hang fault; consumed once)
-    raise_now: bool = False  # an exception fault: the loop raises
-
-    def add(self, at: float, drone: str, kind: str, fire: Callable[[], None]) -> None:
-        self.pending.append((at, drone, kind, fire))
-
-    def fire(self, t: float) -> list[tuple[str, str]]:
-        """Fire the faults due at flight time ``t``; their (drone, "fault:kind"), drone "" for all."""
-        due = [f for f in self.pending if f[0] <= t]
-        self.pending = [f for f in self.pending if f[0] > t]
-        for *_, fn in due:
-            fn()
-        return [(drone, f"fault:{kind}") for _, drone, kind, _ in due]
-
-
-class InjectedFault(RuntimeError):
-    """The exception an ``exception`` fault raises inside the loop."""
-
-
-class StopRequest:
-    """Set by SIGINT/SIGTERM (or :meth:`set`): every drone lands; a second request: emergency stop."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self.signal: str = ""
-        self.count = 0
-
-    def set(self, why: str = "request") -> None:
-        self.signal = why
-        self.count += 1
-        self.event.set()
-
-    def __bool__(self) -> bool:
-        return self.event.is_set()
-
-    @property
-    def urgent(self) -> bool:
-        """A second request arrived: the heartbeat sends the emergency stop at once."""
-        return self.count >= 2
-
-    @contextmanager
-    def handling_signals(self) -> Iterator[None]:
-        """Install SIGINT/SIGTERM handlers for the block (main thread only; elsewhere no-op)."""
-        if threading.current_thread() is not threading.main_thread():
-            yield
-            return
-        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-        for s in old:
-            signal.signal(s, lambda num, _frame: self.set(signal.Signals(num).name))
-        try:
-            yield
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
-
-
-class PolicyRunner:
-    """The team's ``act`` in a worker thread, so a late policy never delays a tick (see the module docstring)."""
-
-    def __init__(self, team: Team, clock: Clock, faults: FaultClock) -> None:
-        self.team, self.clock, self.faults = team, clock, faults
-        self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="policy")
-        self._pending: concurrent.futures.Future[np.ndarray] | None = None
-        self.late_since: float | None = None  # clock time the pending step became late
-
-    def _act(self, *args: Any) -> np.ndarray:
-        if self.faults.stall:
-            stall, self.faults.stall = self.faults.stall, 0.0
-            self.clock.sleep(stall)
-        return self.team.act(*args)
-
-    def act(self, timeout: float, *args: Any) -> np.ndarray | None:
-        """Actions, or None when the step did not finish within ``timeout`` clock seconds (still pending)."""
-        if self._pending is not None and self._pending.done():
-            self._pending.result()  # a stale step finished: re-raise its error, drop its actions
-            self._pending = None
-        if self._pending is None:
-            self._pending = self._pool.submit(self._act, *args)
-        try:
-            actions = self._pending.result(timeout / self.clock.rate)
-        except concurrent.futures.TimeoutError:
-            if self.late_since is None:
-                self.late_since = self.clock.now() - timeout
-            return None
-        self._pending, self.late_since = None, None
-        return actions
-
-    def late_for(self) -> float:
-        return 0.0 if self.late_since is None else self.clock.now() - self.late_since
-
-    def close(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
-
-
-class Flight:
+class Flight(Landing, Sequencing):
     """One flight: the drones, their policies and the loop that flies them (see the module docstring)."""
 
     def __init__(
@@ -295,6 +166,18 @@ class Flight:
         self.notes: dict[str, list[str]] = {}  # fault notes for the next logged tick, per drone
         self.policy = PolicyRunner(team, clock, self.faults)
         self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="transit")
+        self.link_health = LinkHealth(self.names, clock.rate, cfg.shield.link_timeout)
+        self.links = LinkView(np.zeros(D), 0.0)
+        self.speed = np.full(D, np.nan)  # measured speed (m/s) per drone, NaN unknown
+        self.commanded = np.zeros(D)  # speed (m/s) of the velocity last sent to each drone
+        self.reaction = Verdict(Reaction.NONE, (), ())  # the most severe reaction so far
+        self.landing_from: dict[str, np.ndarray] = {}  # where each landing began (its landing column)
+        self.cut: dict[str, tuple[float, str]] = {}  # drones whose motors were cut: height, state then
+        self.last_seen: dict[str, float] = {}  # last measured height per drone
+        self.ended: dict[str, str] = {}  # how each drone ended (after run)
+        self.valid_pos = np.full((D, 3), np.nan)  # each drone's last valid (known, fresh) position
+        self.valid_t = np.full(D, -np.inf)  # and when it was measured (clock)
+        self.grow = np.zeros(D)  # m each drone's separation ellipsoid was grown by last tick (no valid pose)
 
     # ------------------------------------------------------------------ poses
     def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -304,10 +187,18 @@ class Flight:
         pos = np.full((len(self.names), 3), np.nan)
         yaw = np.full(len(self.names), np.nan)
         age = np.full(len(self.names), np.inf)
+        grace = (self.link_health.wall() - self.link_health.resumed) * self.clock.rate  # since a host pause
         for i, name in enumerate(self.names):
             pose = latest.get(self.bodies[name])
-            if pose is not None:
-                pos[i], yaw[i], age[i] = pose.pos, pose.yaw, max(0.0, now - pose.t)
+            if pose is None:
+                continue
+            pos[i], yaw[i], age[i] = pose.pos, pose.yaw, max(0.0, now - pose.t)
+            moving = self.state[name] in ("taking_off", "landing") or (
+                self.state[name] == "flying" and self.commanded[i] > MOVING
+            )
+            if pose.still >= FROZEN_FRAMES and moving:  # frames arrive, the pose does not change: it is as old
+                age[i] = max(age[i], now - pose.moved_t)
+            age[i] = min(age[i], max(grace, 0.0))
         return pos, yaw, age
 
     def observations(
@@ -355,207 +246,40 @@ class Flight:
         finally:
             try:
                 self._land_all()
+                self._settle()  # heartbeat and land commands until every drone is confirmed down (or the limit)
             except Exception as exc:  # the loop itself is broken: land through the bridge alone
-                airborne = [n for n in self.names if self.state[n] in AIRBORNE]
+                airborne = [n for n in self.names if self.state[n] in (*AIRBORNE, "lost")]
                 self.bridge.land(airborne, 2.0)
                 self.bridge.notify_stop(airborne)
-                self.clock.sleep(2.5)
+                end = self.clock.now() + 2.0 + 2.5
+                while self.clock.now() < end:  # the heartbeat goes on while they land
+                    self.bridge.beat()
+                    self.clock.sleep(self.dt)
                 self.aborted = self.aborted or f"{type(exc).__name__}: {exc}"
             pos, yaw, age = self.measured()  # the last row: where every drone ended, in its final state
             self._log_tick(self.clock.now(), -1, pos, yaw, self._shield(pos, age, pos), {}, None)
+            self.ended = self.endings()
             self.bridge.stop_heartbeat()
             self.policy.close()
             self._worker.shutdown(wait=False, cancel_futures=True)
             gc.unfreeze()
         if self.stop and not self.aborted:
             self.aborted = f"stop requested ({self.stop.signal})"
+        down = {n: e for n, e in self.ended.items() if e != "landed"}
+        if down:  # the exit line names every drone that did not land
+            what = "; ".join(f"{n} {e}" for n, e in down.items())
+            self.aborted = f"{self.aborted}; not landed: {what}" if self.aborted else f"not landed: {what}"
 
     episode_done = False  # the current episode reached its own outcome (set per episode)
 
-    def _airborne(self) -> np.ndarray:
-        return np.array([self.state[n] in AIRBORNE for n in self.names])
-
     def _takeoff(self) -> None:
         self.bridge.arm(self.names)
+        self.landing_from.clear()
         self.bridge.takeoff(self.names, self.cfg.flight_height, self.cfg.takeoff_duration)
         self._set_state(self.names, "taking_off")
         self._watch(self.cfg.takeoff_duration + 0.5)
         self._set_state([n for n in self.names if self.state[n] == "taking_off"], "flying")
         self.prev_setpoint[:] = np.nan  # the first transit tick takes over from the planner, through the shield
-
-    def _spawn(self) -> tuple[np.ndarray, np.ndarray]:
-        P = len(self.pursuers)
-        physical_e = bool(self.evader_drones)
-
-        def draw() -> tuple[np.ndarray, np.ndarray]:
-            pos, _ = spawn(self.task, self.rng, 1)
-            return pos[0, :P], pos[0, P:]
-
-        def draw_physical() -> tuple[np.ndarray, np.ndarray]:
-            pos_p, pos_e = draw()
-            self._drawn = (pos_p, pos_e)
-            return pos_p, pos_e if physical_e else np.zeros((0, 2))
-
-        separated_spawn(draw_physical, self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height)
-        return self._drawn
-
-    def _go_to_spawn(self, spawn_p: np.ndarray, spawn_e: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Take off landed drones, then fly every drone to its spawn position on a planned transit; the spawn
-        flown to (another draw where no transit reaches the first), or None when the flight was aborted."""
-        # a drone captured on the episode's last tick is still landing: down first, then up again with the rest
-        down_by = self.clock.now() + max(1.0, self.cfg.flight_height / 0.5) + 1.0
-        while any(self.state[n] == "landing" for n in self.names) and self.clock.now() < down_by:
-            if not self._hold_tick():
-                return None
-        landed = [n for n in self.names if self.state[n] == "landed"]
-        if landed:
-            if not self._clear_columns(landed):
-                return None
-            self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
-            self._set_state(landed, "taking_off")
-            # the drones in the air keep their setpoint stream (held where they are): without it the firmware
-            # levels them out after 0.5 s and stops their motors after 2 s
-            end = self.clock.now() + self.cfg.takeoff_duration + 0.5
-            while self.clock.now() < end:
-                if not self._hold_tick():
-                    return None
-            up = [n for n in landed if self.state[n] == "taking_off"]
-            self._set_state(up, "flying")
-            k = [self.names.index(n) for n in up]
-            self.hold_at[k], self.prev_setpoint[k] = np.nan, np.nan  # taken over from the planner
-        if self.aborted:
-            return None
-        start = self._at_height()
-        flying = self._airborne()
-        lo_hi = self._fence()
-        blocked: TransitBlocked | None = None
-        for draw in range(SPAWN_DRAWS):
-            if draw:  # no transit to that draw: the task's spawn distribution, conditioned on a reachable one
-                spawn_p, spawn_e = self._spawn()
-                self.notes.setdefault("", []).append("spawn_redrawn")
-            targets = np.concatenate([spawn_p, spawn_e if self.evader_drones else np.zeros((0, 2))])
-            end = np.c_[targets, np.full(len(targets), self.cfg.flight_height)]
-            # the task's spawn regions reach into the fence margin: a target the shield would clip is never reached
-            end[:, :2], _ = push_out_of_obstacles(
-                np.clip(end[:, :2], *lo_hi), self.obstacles, self.shield_cfg.obstacle_clearance
-            )
-            end[:, :2] = np.clip(end[:, :2], *lo_hi)
-            end[~flying] = start[~flying]
-            try:
-                plan = self._plan(start, end)
-                break
-            except TransitBlocked as exc:
-                blocked = exc
-        else:
-            self.aborted = f"transit blocked: {blocked} ({SPAWN_DRAWS} spawn draws)"
-            return None
-        if plan is None or not self._fly_transit(plan, end, flying):
-            return None
-        return spawn_p, spawn_e
-
-    def _fence(self) -> tuple[np.ndarray, np.ndarray]:
-        """The geofence's lower and upper (x, y) corners."""
-        return geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
-
-    def _at_height(self) -> np.ndarray:
-        """Every drone's measured position (D, 3) at the flight height (the origin where it is not tracked)."""
-        pos, _, _ = self.measured()
-        start = np.where(np.isfinite(pos), pos, np.r_[0.0, 0.0, self.cfg.flight_height])
-        start[:, 2] = self.cfg.flight_height
-        return start
-
-    def _plan(self, start: np.ndarray, end: np.ndarray) -> Transit | None:
-        """A transit from ``start`` to ``end`` (raises :class:`TransitBlocked`), planned in the worker thread
-        while the loop keeps ticking (and the heartbeat fed); None when the flight was aborted meanwhile."""
-        planning = self._worker.submit(
-            plan_transit,
-            start,
-            end,
-            self.cfg.goto_speed,
-            self.shield_cfg.drone_radius,
-            self.shield_cfg.drone_half_height,
-            bounds=self._fence(),
-            obstacles=self.obstacles,
-            clearance=self.shield_cfg.obstacle_clearance,
-        )
-        while not planning.done():
-            if not self._hold_tick():
-                return None
-        return planning.result()
-
-    def _holding_while(self, work: Callable[[], None]) -> None:
-        """Run ``work`` (writing the log so far: 0.2-0.4 s) in the worker thread while the loop holds every
-        streaming drone where it is, so the setpoint stream, the heartbeat and the shield's watch go on; after an
-        abort it simply runs."""
-        if self.aborted:
-            work()
-            return
-        running = self._worker.submit(work)
-        while not running.done():
-            if not self._hold_tick():
-                break
-        running.result()
-
-    def _fly_transit(self, plan: Transit, end: np.ndarray, moving: np.ndarray) -> bool:
-        """Stream ``plan`` through the shield until the ``moving`` drones are at ``end``; False if aborted."""
-        began = self.clock.now()
-        deadline = began + plan.total + 5.0
-        while self.clock.now() < deadline and not self.aborted:
-            tick = self._begin_tick()
-            ref, vel = plan.at(tick - began)
-            pos, yaw, age = self.measured()
-            decision = self._shield(pos, age, ref, vel)
-            self._apply(decision)
-            self._touchdown(pos)
-            self._log_tick(tick, -1, pos, yaw, decision, {}, None)
-            done = np.hypot(*(pos[:, :2] - end[:, :2]).T) < ARRIVED
-            if tick - began >= plan.total and done[moving].all():
-                return True
-        if not self.aborted:
-            self.aborted = "transit did not arrive in time"
-        return False
-
-    def _clear_columns(self, landed: list[str]) -> bool:
-        """Fly the drones in the air off the columns the ``landed`` ones will take off through (a pursuer that
-        caught an evader drone hovers beside where it landed, or above it) on a planned transit; False (and the
-        flight ends) when that cannot be done."""
-        start = self._at_height()
-        flying = self._airborne()
-        ground = np.array([self.names.index(n) for n in landed])
-        r, h = self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height
-        lo, hi = self._fence()
-        end = start.copy()
-        for i in np.flatnonzero(flying):
-            near = ground[np.hypot(*(start[ground, :2] - start[i, :2]).T) < COLUMN_CLEAR]
-            if not len(near):
-                continue
-            away = start[i, :2] - start[near, :2].mean(0)
-            heading = math.atan2(away[1], away[0]) if np.hypot(*away) > 1e-6 else 0.0
-            for k in (0, 1, -1, 2, -2, 3, -3, 4, -4, 5, -5, 6, -6, 7, -7, 8):  # straight away first
-                a = heading + k * np.pi / 8
-                target = start[near, :2].mean(0) + 1.1 * COLUMN_CLEAR * np.array([math.cos(a), math.sin(a)])
-                others = np.delete(end, i, axis=0)
-                clear = (
-                    (target >= lo).all()
-                    and (target <= hi).all()
-                    and (np.hypot(*(start[ground, :2] - target).T) >= COLUMN_CLEAR).all()
-                    and obstacle_distance(target[None], self.obstacles)[0] >= self.shield_cfg.obstacle_clearance
-                    and (ellipsoid_distance(others - np.r_[target, start[i, 2]], r, h) >= MARGIN).all()
-                )
-                if clear:
-                    end[i, :2] = target
-                    break
-            else:
-                self.aborted = f"no room to take {self.names[int(near[0])]} off: {self.names[i]} hovers over it"
-                return False
-        if np.array_equal(end, start):
-            return True
-        try:
-            plan = self._plan(start, end)
-        except TransitBlocked as exc:
-            self.aborted = f"transit blocked clearing a takeoff: {exc}"
-            return False
-        return plan is not None and self._fly_transit(plan, end, flying)
 
     def _fly_episode(self) -> None:
         self.episode_done = False
@@ -708,6 +432,8 @@ class Flight:
         """Wait for the next tick, beat the heartbeat, fire due faults; the tick's clock time."""
         tick = self.ticks.wait()
         self.bridge.beat()
+        if self.link_health.host_paused(self.ticks.late_by, self.dt):
+            self.notes.setdefault("", []).append("host_pause")
         for drone, note in self.faults.fire(tick - self.t0):
             for n in [drone] if drone else self.names:
                 self.notes.setdefault(n, []).append(note)
@@ -728,42 +454,52 @@ class Flight:
         vel: np.ndarray | None = None,
         policy_late: float = 0.0,
     ) -> ShieldDecision:
-        battery, link = self.bridge.battery(), self.bridge.link_age()
+        battery = self.bridge.battery()
+        self.links = self.link_health.update(self.bridge.link_age(), self.bridge.sender_age())
         bits = self.bridge.supervisor()
-        sender = self.bridge.sender_age()
         airborne = self._airborne()
+        physical = airborne | np.array([self.state[n] == "lost" for n in self.names])
+        now = self.clock.now()
+        valid = np.isfinite(pos).all(1) & (age <= self.shield_cfg.stale_pose)
+        self.valid_pos[valid], self.valid_t[valid] = pos[valid], now
+        grow = np.where(valid, 0.0, np.minimum(self.shield_cfg.max_speed * (now - self.valid_t), GROW_CAP))
         inp = ShieldInput(
             dt=self.dt,
             arena=(self.geometry.width, self.geometry.height),
             names=tuple(self.names),
-            physical=airborne,
+            physical=physical,
             pos=pos,
-            vel=self._velocity(pos),
+            vel=self._velocity(pos, age),
             pose_age=age,
             setpoint=setpoints,
             prev_setpoint=self.prev_setpoint,
             battery=np.array([battery.get(n, np.nan) if airborne[i] else np.inf for i, n in enumerate(self.names)]),
-            # a sender stuck in a blocked radio is as good as a lost link: nothing reaches the drones
-            link_age=np.array([max(link.get(n, np.inf) * self.clock.rate, sender) for n in self.names]),
+            link_age=self.links.silence,
+            links_silent=self.links.all_silent,
             policy_latency=policy_late,
             stop_requested=bool(self.stop),
             setpoint_vel=vel,
             hold_at=self.hold_at,
-            locked=np.array([bool(bits.get(n, 0) >> 6 & 1) and self.state[n] != "stopped" for n in self.names]),
+            locked=np.array([cut_by_firmware(bits.get(n, 0)) and self.state[n] in AIRBORNE for n in self.names]),
             obstacles=self.obstacles,
+            last_pos=self.valid_pos,
+            grow=np.where(physical, grow, 0.0),
         )
+        self.grow = inp.grow if inp.grow is not None else np.zeros(len(self.names))
         return shield(inp, self.shield_cfg)
 
-    def _velocity(self, pos: np.ndarray) -> np.ndarray:
-        """Velocities (D, 3) from the last two ticks' poses (NaN where unknown), for the shield's look-ahead."""
+    def _velocity(self, pos: np.ndarray, age: np.ndarray) -> np.ndarray:
+        """Velocities (D, 3) from the last two ticks' fresh poses (NaN where unknown), for the shield's
+        look-ahead; their speeds kept in :attr:`speed`."""
         now, last = self.clock.now(), self._last_pose
         self._last_pose = (now, pos.copy())
-        if last is None or now - last[0] <= 1e-6:
-            return np.full_like(pos, np.nan)
-        return (pos - last[1]) / (now - last[0])
+        vel = np.full_like(pos, np.nan) if last is None or now - last[0] <= 1e-6 else (pos - last[1]) / (now - last[0])
+        vel[~(age <= self.shield_cfg.stale_pose)] = np.nan
+        self.speed = np.linalg.norm(vel, axis=1)
+        return vel
 
     def _apply(self, decision: ShieldDecision) -> bool:
-        """Post what the shield allows; True when it ends the episode (and the flight)."""
+        """Post what the shield allows and take its reactions; True when it ends the episode (and the flight)."""
         act = decision.action
         vel = decision.velocity if decision.velocity is not None else np.zeros_like(decision.setpoint)
         stream = {
@@ -773,34 +509,15 @@ class Flight:
         }
         self.bridge.post_setpoints(stream)
         for n, sp in stream.items():
-            self.prev_setpoint[self.names.index(n)] = sp[0]
+            i = self.names.index(n)
+            self.prev_setpoint[i] = sp[0]
+            self.commanded[i] = float(np.linalg.norm(sp[1]))
         if decision.hold_at is not None:
             self.hold_at = decision.hold_at.copy()
-        if (act >= Action.LAND).any():
-            rules = sorted({e.rule for e in decision.events if e.rule not in ("speed", "separation", "step")})
-            self.aborted = self.aborted or "shield: " + (",".join(rules) or "land")
-            self._escalate(decision)
-            return True
-        return False
-
-    def _escalate(self, decision: ShieldDecision) -> None:
-        """Drones the shield stops get an emergency stop; lost links are left alone; every other drone lands."""
-        lost = set(decision.lost())
-        stop = [n for i, n in enumerate(self.names) if decision.action[i] == Action.STOP and n not in lost]
-        if stop:
-            self.bridge.emergency_stop(stop)
-            self._set_state(stop, "stopped")
-        for n in lost:
-            self._set_state([n], "lost")
-
-    def _land(self, names: Sequence[str]) -> None:
-        """Hand the drones to the high-level commander to land: the land command first, then notify."""
-        names = [n for n in names if self.state[n] in ("taking_off", "flying")]
-        if names:
-            duration = max(1.0, self.cfg.flight_height / 0.5)
-            self.bridge.land(names, duration)
-            self.bridge.notify_stop(names)
-            self._set_state(names, "landing")
+        pos = self._last_pose[1] if self._last_pose is not None else np.full((len(self.names), 3), np.nan)
+        ended = self._react(decision, pos).reaction >= Reaction.LAND_ONE
+        self._call_lost()
+        return ended
 
     def _hold_tick(self) -> bool:
         """One tick holding every streaming drone where it is (latched, zero velocity, through the shield);
@@ -817,58 +534,7 @@ class Flight:
         self._log_tick(tick, -1, pos, yaw, decision, {}, None)
         return not ended
 
-    def _brake(self, seconds: float = 0.6) -> None:
-        """Hold every streaming drone for ``seconds``: a drone handed to the planner at speed would swing back
-        to where the land command found it."""
-        end = self.clock.now() + seconds
-        while self.clock.now() < end and any(self.state[n] == "flying" for n in self.names):
-            if not self._hold_tick():
-                return
-
-    def _land_all(self) -> None:
-        """Brake, then land every drone still in the air, watching the shield (and feeding the heartbeat) until
-        they are down."""
-        self._brake()
-        self._land([n for n in self.names if self.state[n] in AIRBORNE])
-        if any(self.state[n] == "landing" for n in self.names):
-            self._watch(max(1.0, self.cfg.flight_height / 0.5) + 1.0, landing=True)
-
-    def _watch(self, seconds: float, landing: bool = False) -> None:
-        """Let the high-level commander fly ``seconds`` (takeoff, landing), logging ticks and watching the shield.
-
-        The shield's rules on poses, links, batteries and signals still apply: during a
-        takeoff a LAND ends the flight (everything lands), a STOP stops; drones that
-        touch down become ``landed``; a landing ends early once every landing drone is down.
-        """
-        end = self.clock.now() + seconds
-        while self.clock.now() < end:
-            tick = self._begin_tick()
-            pos, yaw, age = self.measured()
-            decision = self._shield(pos, age, pos)  # no setpoints of ours: the high-level commander flies
-            decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
-            self._log_tick(tick, -1, pos, yaw, decision, {}, None)
-            if decision.lost() or (decision.action == Action.STOP).any():
-                self._escalate(decision)
-            self._touchdown(pos)
-            if not landing and (decision.action >= Action.LAND).any():
-                rules = sorted({e.rule for e in decision.events if e.rule not in ("speed", "separation", "step")})
-                self.aborted = self.aborted or "shield: " + (",".join(rules) or "land")
-                self._escalate(decision)
-                return
-            if landing and not any(self.state[n] == "landing" for n in self.names):
-                return
-
-    def _touchdown(self, pos: np.ndarray) -> None:
-        """Landing drones measured on the ground are ``landed``."""
-        down = np.nan_to_num(pos[:, 2], nan=0.0) < 0.05
-        self._set_state([n for i, n in enumerate(self.names) if self.state[n] == "landing" and down[i]], "landed")
-
     # ---------------------------------------------------------------- logging
-    def _set_state(self, names: Sequence[str], state: str) -> None:
-        for n in names:
-            if self.state[n] not in ("stopped", "lost") or state in ("stopped", "lost"):
-                self.state[n] = state
-
     def _log_tick(
         self,
         t: float,

@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 
 _AXIS = re.compile(r"^([+-]?)([xyz])$")
 STARTUP_TIMEOUT = 20.0  # wall seconds for the reader process to start (imports), before connect_timeout
+NOISE_FLOOR = 1e-5  # m: a body whose position changes less than this between frames did not move (or froze)
+FROZEN_FRAMES = 5  # frames in a row without a change above the noise floor: a frozen pose, while commanded to move
 
 
 class MocapError(UserError, RuntimeError):
@@ -176,12 +178,16 @@ class FrameTransform:
 
 @dataclass(frozen=True, eq=False)
 class Pose:
-    """A rigid body's pose in the arena frame; ``t`` is the clock time the frame ARRIVED."""
+    """A rigid body's pose in the arena frame; ``t`` is the clock time the frame ARRIVED; ``still`` counts the
+    frames in a row before this one whose position it repeats within :data:`NOISE_FLOOR`, ``moved_t`` is the
+    arrival time of the last frame that moved (a frozen system keeps sending the same pose)."""
 
     t: float
     pos: np.ndarray  # (3,)
     yaw: float  # radians, counter-clockwise from the arena's +x
     quat: np.ndarray | None = None  # (w, x, y, z) in the arena frame
+    still: int = 0
+    moved_t: float = math.nan
 
 
 FrameCallback = Callable[[dict[str, Pose]], None]
@@ -231,8 +237,14 @@ class _Poses:
         arena, yaw = self.transform.to_arena(pos[seen], quat[seen])
         q_arena = self.transform.quat_to_arena(quat[seen])
         kept = [n for n, s in zip(names, seen, strict=True) if s]
-        poses = {n: Pose(t, arena[i], float(yaw[i]), q_arena[i]) for i, n in enumerate(kept)}
         with self._lock:
+            poses = {}
+            for i, n in enumerate(kept):
+                prev = self._latest.get(n)
+                if prev is not None and float(np.abs(arena[i] - prev.pos).max()) <= NOISE_FLOOR:
+                    poses[n] = Pose(t, arena[i], float(yaw[i]), q_arena[i], prev.still + 1, prev.moved_t)
+                else:
+                    poses[n] = Pose(t, arena[i], float(yaw[i]), q_arena[i], 0, t)
             self._latest.update(poses)
             self.frames += 1
             callbacks = list(self._callbacks)
@@ -442,6 +454,8 @@ class SimMocap(_Poses):
         self.true_transform = true_transform or transform
         self.rng = np.random.default_rng(seed)
         self._drops: list[tuple[str | None, float, float]] = []
+        self._freezes: list[tuple[str | None, float, float]] = []
+        self._frozen: dict[tuple[str, float], tuple[np.ndarray, np.ndarray]] = {}  # (body, start) -> its frozen pose
         self.error = ""  # why the frames stopped, when the truth failed
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
@@ -450,6 +464,12 @@ class SimMocap(_Poses):
         """Send nothing of ``body`` (the whole system when None) for frames captured in [start, end) clock s."""
         with self._lock:
             self._drops.append((body, start, end))
+
+    def freeze(self, body: str | None, start: float, end: float) -> None:
+        """Keep sending the pose ``body`` (every body when None) had at ``start`` for frames captured in
+        [start, end) clock s: a frozen system whose frames keep arriving."""
+        with self._lock:
+            self._freezes.append((body, start, end))
 
     def start(self) -> None:
         if self._thread is None:
@@ -478,6 +498,13 @@ class SimMocap(_Poses):
         mocap, quat = self.true_transform.to_mocap(pos, yaw)
         if self.noise > 0:
             mocap = mocap + self.rng.normal(0.0, self.noise, mocap.shape)
+        with self._lock:
+            freezes = [(b, s) for b, s, e in self._freezes if s <= t < e]
+        for k, n in enumerate(names):
+            start = next((s for b, s in freezes if b is None or b == n), None)
+            if start is not None:
+                kept = self._frozen.setdefault((n, start), (mocap[k].copy(), quat[k].copy()))
+                mocap[k], quat[k] = kept
         return names, mocap, quat
 
     def _run(self) -> None:

@@ -23,22 +23,28 @@ Rules (``rule`` names as they appear in the flight log):
   proposed setpoint with NaN holds.
 - ``obstacle``: a setpoint closer than ``obstacle_clearance`` to an obstacle of the
   task (boxes and discs; the walls are the fence's) is pushed out to that clearance.
-- ``separation``: every drone is an ellipsoid of radius ``drone_radius`` and
-  half-height ``drone_half_height`` (Crazyswarm's 0.125 / 0.375 m); two physical drones
-  conflict when their ellipsoids touch now or on their measured straight-line motion
-  within ``lookahead`` seconds (1 s: the tick, the radio and the stopping time), or when
-  their proposed setpoints, or their positions, carried along the velocity feed-forward
-  for ``lookahead`` seconds, converge until they touch; a 10 % margin leaves room to brake; both hold,
-  pushed apart to 1.2 ellipsoids. A drone that holds is checked at its hold point with no
-  feed-forward, not along its proposed setpoint: were the host to pause, every drone flies on to
-  what it was sent last, and those targets are kept apart.
+- ``separation`` (also while the onboard planner takes off or lands them): every drone
+  is an ellipsoid of radius ``drone_radius`` and half-height ``drone_half_height``
+  (Crazyswarm's 0.125 / 0.375 m); two physical drones conflict when their ellipsoids
+  touch now or on their measured straight-line motion within ``lookahead`` seconds (1
+  s: the tick, the radio and the stopping time), or when their proposed setpoints, or
+  their positions, carried along the velocity feed-forward for ``lookahead`` seconds,
+  converge until they touch; a 10 % margin leaves room to brake; both hold, pushed
+  apart to 1.2 ellipsoids. A drone that holds is checked at its hold point with no
+  feed-forward, not along its proposed setpoint: were the host to pause, every drone
+  flies on to what it was sent last, and those targets are kept apart. A drone without
+  a valid pose (unknown or stale) or with a lost link is an obstacle at its last valid
+  pose, its ellipsoid grown by ``grow``, how far it may have flown since.
 - ``stale_pose``: a drone without a fresh pose for ``stale_pose`` seconds, or with NaN
   in its pose, lands. ``all_stale``: every drone stale (a landed drone with a fresh
   pose shows the system alive) -> all land; ``mocap_lost``: the freshest pose older than
   ``stop_after`` -> all STOP.
 - ``policy_stall``: the policy has been late for ``policy_stall`` s -> all land.
-- ``link_lost``: no packet from a drone for ``link_timeout`` -> that drone is LOST and
-  every other drone lands. ``locked``: a drone's supervisor reports it locked (its
+- ``link_lost``: no packet from a drone for ``link_timeout`` (host pauses excluded:
+  :mod:`atdrone.deploy.links`) -> that drone is LOST (the loop sends it the land command
+  every tick) and every other drone lands. ``links_silent``: every link silent together
+  (the ground station stalled, not N radios) -> every drone holds; still silent
+  ``link_stall`` s later -> all land; nobody is marked lost. ``locked``: a drone's supervisor reports it locked (its
   emergency stop fired) -> it is STOPPED and every other drone lands.
 - ``battery``: below ``min_battery`` -> that drone lands.
 - ``signal``: SIGINT/SIGTERM -> all land.
@@ -94,6 +100,7 @@ class ShieldConfig:
     policy_late: float = field(default=0.3, metadata=_check(_positive))  # s a policy step may take: then hold
     policy_stall: float = field(default=1.0, metadata=_check(_positive))  # s of a late policy: then land
     link_timeout: float = field(default=0.5, metadata=_check(_positive))  # s without a packet -> lost
+    link_stall: float = field(default=0.5, metadata=_check(_positive))  # s of every link silent, held: then land
     min_battery: float = field(default=3.4, metadata=_check(_positive))  # V
 
 
@@ -126,15 +133,19 @@ class ShieldInput:
     hold_at: np.ndarray | None = None  # (D, 3) latched hold points of drones held last tick (NaN: not held)
     locked: np.ndarray | None = None  # (D,) bool: the supervisor reports the drone locked
     obstacles: Obstacles = field(default_factory=Obstacles)
+    links_silent: float = 0.0  # s every link has been silent together (0: some link is heard)
+    last_pos: np.ndarray | None = None  # (D, 3) each drone's last valid position (NaN: never)
+    grow: np.ndarray | None = None  # (D,) m a drone without a valid pose may have flown since (0: it has one)
 
 
 @dataclass(frozen=True)
 class ShieldEvent:
-    """A rule that fired for a drone."""
+    """A rule that fired for a drone, and the action it asked for."""
 
     drone: str
     rule: str
     detail: str
+    action: int = 0
 
 
 @dataclass(frozen=True)
@@ -161,18 +172,29 @@ def geofence(arena: tuple[float, float], margin: float) -> tuple[np.ndarray, np.
     return np.array([margin, margin]), np.array([arena[0] - margin, arena[1] - margin])
 
 
-def ellipsoid_distance(delta: np.ndarray, radius: float, half_height: float) -> np.ndarray:
+def _scale(radius: float | np.ndarray, half_height: float | np.ndarray) -> np.ndarray:
+    """The pair's semi-axes: twice the per-drone ones, (3,) or (..., 3) for per-pair arrays."""
+    r, h = np.broadcast_arrays(np.asarray(radius, dtype=np.float64), np.asarray(half_height, dtype=np.float64))
+    return np.stack([2 * r, 2 * r, 2 * h], -1)
+
+
+def ellipsoid_distance(delta: np.ndarray, radius: float | np.ndarray, half_height: float | np.ndarray) -> np.ndarray:
     """Scaled distance (...) between two drones' centres ``delta`` (..., 3) apart: below 1 their ellipsoids
-    (``radius``, ``half_height`` each) touch; the pair's Minkowski sum has twice the semi-axes."""
-    scale = np.array([2 * radius, 2 * radius, 2 * half_height])
+    (``radius``, ``half_height`` each; per pair when arrays) touch; the pair's Minkowski sum has twice the
+    semi-axes."""
+    scale = _scale(radius, half_height)
     return np.asarray(np.sqrt(((delta / scale) ** 2).sum(-1)))
 
 
 def closest_approach(
-    rel_pos: np.ndarray, rel_vel: np.ndarray, horizon: float, radius: float, half_height: float
+    rel_pos: np.ndarray,
+    rel_vel: np.ndarray,
+    horizon: float,
+    radius: float | np.ndarray,
+    half_height: float | np.ndarray,
 ) -> np.ndarray:
     """The smallest scaled distance (...) over t in [0, horizon] of a pair moving ``rel_pos + rel_vel t``."""
-    scale = np.array([2 * radius, 2 * radius, 2 * half_height])
+    scale = _scale(radius, half_height)
     p, v = rel_pos / scale, rel_vel / scale
     vv = (v * v).sum(-1)
     t = np.clip(np.where(vv > 1e-12, -(p * v).sum(-1) / np.maximum(vv, 1e-12), 0.0), 0.0, horizon)
@@ -236,7 +258,7 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     def fire(mask: np.ndarray, act: Action, rule: str, detail: str) -> None:
         for k in np.flatnonzero(mask):
             action[k] = max(action[k], int(act))
-            events.append(ShieldEvent(names[k], rule, detail))
+            events.append(ShieldEvent(names[k], rule, detail, int(act)))
 
     everyone = np.ones(D, dtype=bool)
     # --- whole-flight rules
@@ -244,7 +266,12 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
         fire(everyone, Action.LAND, "signal", "stop requested (SIGINT/SIGTERM)")
     if inp.policy_latency > cfg.policy_stall:
         fire(everyone, Action.LAND, "policy_stall", f"policy late for {inp.policy_latency:.2f} s")
-    lost = np.asarray(inp.link_age) > cfg.link_timeout
+    silent_all = inp.links_silent > 0
+    lost = (np.asarray(inp.link_age) > cfg.link_timeout) & (not silent_all)
+    if silent_all:
+        stalled = inp.links_silent > cfg.link_timeout + cfg.link_stall
+        why = f"every link silent for {inp.links_silent:.2f} s (the ground station stalled)"
+        fire(everyone, Action.LAND if stalled else Action.HOLD, "links_silent", why)
     if lost.any():
         fire(lost, Action.LOST, "link_lost", f"no packet for more than {cfg.link_timeout} s")
         fire(
@@ -316,11 +343,18 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     latch = np.where(np.isfinite(prev_hold).all(1)[:, None], prev_hold, here)
     latch[:, 2] = np.clip(np.where(np.isfinite(latch[:, 2]), latch[:, 2], sp[:, 2]), z_lo, z_hi)
     vel = np.nan_to_num(np.asarray(inp.vel, dtype=np.float64))
-    ok = phys & known
+    # a drone with no valid pose (or a lost one) is an obstacle at its last pose, grown by how far it may have flown
+    grow = np.zeros(D) if inp.grow is None else np.nan_to_num(np.asarray(inp.grow, dtype=np.float64))
+    last = np.full((D, 3), np.nan) if inp.last_pos is None else np.asarray(inp.last_pos, dtype=np.float64)
+    ghost = phys & (grow > 0) & np.isfinite(last).all(1)
+    pos = np.where(ghost[:, None], last, pos)
+    vel[ghost] = 0.0
+    ok = phys & (known | ghost)
     i, j = np.triu_indices(D, 1)
     keep = ok[i] & ok[j]
     i, j = i[keep], j[keep]
-    r, h = cfg.drone_radius, cfg.drone_half_height
+    r = (2 * cfg.drone_radius + grow[i] + grow[j]) / 2
+    h = (2 * cfg.drone_half_height + grow[i] + grow[j]) / 2
     now_d = ellipsoid_distance(pos[j] - pos[i], r, h)
     ahead = closest_approach(pos[j] - pos[i], vel[j] - vel[i], cfg.lookahead, r, h)
     tracking = action == Action.TRACK
@@ -344,11 +378,11 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     hold = action == Action.HOLD
     track = action == Action.TRACK
     push = np.zeros((D, 3))
-    for a, b, d in zip(i[conflict_pair], j[conflict_pair], now_d[conflict_pair], strict=True):
+    for a, b, d, rr in zip(i[conflict_pair], j[conflict_pair], now_d[conflict_pair], r[conflict_pair], strict=True):
         delta = pos[a, :2] - pos[b, :2]
         norm = float(np.hypot(*delta))
         unit = delta / norm if norm > 1e-9 else np.array([1.0, 0.0])
-        shift = max(0.0, PUSH_MARGIN - float(d)) * 2 * r / 2
+        shift = max(0.0, PUSH_MARGIN - float(d)) * float(rr)
         push[a, :2] += unit * shift
         push[b, :2] -= unit * shift
     out = np.full((D, 3), np.nan)
@@ -363,8 +397,10 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
     where = np.where(hold[:, None], pushed, np.where(track[:, None], sp, pos))
     for k in np.flatnonzero(hold & ok & (np.abs(push).sum(1) > 0)):
         others = np.flatnonzero(ok & (np.arange(D) != k))
-        before = ellipsoid_distance(pos[others] - pos[k], r, h)
-        after = ellipsoid_distance(where[others] - pushed[k], r, h)
+        rk = (2 * cfg.drone_radius + grow[others] + grow[k]) / 2
+        hk = (2 * cfg.drone_half_height + grow[others] + grow[k]) / 2
+        before = ellipsoid_distance(pos[others] - pos[k], rk, hk)
+        after = ellipsoid_distance(where[others] - pushed[k], rk, hk)
         if (after < np.minimum(before, PUSH_MARGIN) - 1e-9).any():
             pushed[k] = latch[k]
     out[hold] = pushed[hold]

@@ -1,0 +1,320 @@
+"""Landing and the end of a flight: land commands, reactions to faults, confirmation, how each drone ended.
+
+:class:`Landing` is the part of :class:`~atdrone.deploy.loop.Flight` that brings drones
+down and says how they came down:
+
+- a drone is handed to the onboard planner to land (the land command, then
+  ``notify_setpoint_stop``); a drone whose link is judged lost gets that command again on
+  every tick until it is heard again (then it lands under watch) or the flight is over;
+- the most severe reaction of a tick is taken (:mod:`atdrone.deploy.reactions`): drones
+  the shield stops get the emergency stop, except a landing drone still in its landing
+  column; a drone whose supervisor reports itself locked (its firmware cut the motors) is
+  recorded as cut, with the height it was last measured at;
+- a drone is **landed** only when its firmware confirms it: the supervisor's flying bit
+  off and its planner finished or idle, heard over a live link, and the drone measured
+  still (or not measured); a height near the floor is not enough (it is also true at the
+  start of a takeoff);
+- after any end of a flight, whatever the reason, :meth:`Landing._settle` keeps the
+  ticks (so the dead-man heartbeat) and the land commands going until every drone is
+  landed, cut or the hard limit passes; :meth:`Landing.endings` then says per drone
+  ``landed``, ``cut in the air at Z m (STATE)``, ``lost (...)`` or ``not confirmed
+  landed (...)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from atdrone.deploy.bridge import Bridge
+from atdrone.deploy.clock import Clock
+from atdrone.deploy.config import DeployConfig
+from atdrone.deploy.crtp import BIT_CRASHED, BIT_HL_DISABLED, BIT_HL_FINISHED, BIT_IS_FLYING, BIT_LOCKED, BIT_TUMBLED
+from atdrone.deploy.links import LinkView
+from atdrone.deploy.reactions import Reaction, Verdict, spare_landing, verdict
+from atdrone.deploy.shield import Action, ShieldConfig, ShieldDecision
+
+AIRBORNE = ("taking_off", "flying", "landing")
+CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
+STILL = 0.1  # m/s: a landed drone measured slower than this
+LANDED_CONFIRM = 2.5  # s: the supervisor reports a drone flying until its motors idled for 2 s
+SETTLE_EXTRA = 3.0  # s past a landing and its confirmation before the flight gives up waiting (the hard limit)
+CUT_BITS = (1 << BIT_LOCKED) | (1 << BIT_TUMBLED) | (1 << BIT_CRASHED)
+
+
+def cut_by_firmware(bits: int) -> bool:
+    """The supervisor reports the drone locked, tumbled or crashed: its motors are off until a reboot."""
+    return bool(bits & CUT_BITS)
+
+
+def confirmed_down(bits: int, speed: float) -> bool:
+    """The firmware says the drone is on the ground: not flying, its planner finished or idle, not cut; and it
+    is measured still (``speed`` NaN: not measured)."""
+    planner_done = bool(bits >> BIT_HL_FINISHED & 1 or bits >> BIT_HL_DISABLED & 1)
+    return not bits >> BIT_IS_FLYING & 1 and planner_done and not cut_by_firmware(bits) and not speed > STILL
+
+
+class Landing:
+    """Landing, reactions and the end of a flight (see the module docstring)."""
+
+    cfg: DeployConfig
+    bridge: Bridge
+    clock: Clock
+    shield_cfg: ShieldConfig
+    names: list[str]
+    state: dict[str, str]
+    aborted: str
+    progress: Callable[[str], None]
+    links: LinkView
+    speed: np.ndarray
+    reaction: Verdict
+    landing_from: dict[str, np.ndarray]
+    cut: dict[str, tuple[float, str]]
+    last_seen: dict[str, float]
+    grow: np.ndarray
+    hold_at: np.ndarray
+    prev_setpoint: np.ndarray
+    notes: dict[str, list[str]]
+
+    # provided by the flight
+    def _begin_tick(self) -> float:
+        raise NotImplementedError
+
+    def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def _shield(
+        self,
+        pos: np.ndarray,
+        age: np.ndarray,
+        setpoints: np.ndarray,
+        vel: np.ndarray | None = None,
+        policy_late: float = 0.0,
+    ) -> ShieldDecision:
+        raise NotImplementedError
+
+    def _hold_tick(self) -> bool:
+        raise NotImplementedError
+
+    def _log_tick(
+        self,
+        t: float,
+        step: int,
+        pos: np.ndarray,
+        yaw: np.ndarray,
+        decision: ShieldDecision,
+        latency: dict[str, float],
+        virtual_e: np.ndarray | None,
+    ) -> None:
+        raise NotImplementedError
+
+    def _airborne(self) -> np.ndarray:
+        return np.array([self.state[n] in AIRBORNE for n in self.names])
+
+    def _set_state(self, names: Sequence[str], state: str) -> None:
+        for n in names:
+            if self.state[n] not in ("stopped", "lost") or state in ("stopped", "lost", "landing"):
+                self.state[n] = state
+
+    def _landing_time(self) -> float:
+        """Seconds the planner takes to land from the flight height."""
+        return max(2.0, self.cfg.flight_height / 0.25)
+
+    # ------------------------------------------------------------ commands
+    def _land(self, names: Sequence[str]) -> None:
+        """Hand the drones to the high-level commander to land: the land command first, then notify."""
+        names = [n for n in names if self.state[n] in ("taking_off", "flying")]
+        if names:
+            self.bridge.land(names, self._landing_time())
+            self.bridge.notify_stop(names)
+            pos = self.measured()[0]
+            for n in names:
+                self.landing_from[n] = pos[self.names.index(n)].copy()
+            self._set_state(names, "landing")
+
+    def _call_lost(self) -> None:
+        """The land command again to every drone judged lost (it reaches the drone once its link carries)."""
+        lost = [n for n in self.names if self.state[n] == "lost"]
+        if lost:
+            self.bridge.land(lost, self._landing_time())
+            self.bridge.notify_stop(lost)
+
+    # ------------------------------------------------------------ reactions
+    def _react(self, decision: ShieldDecision, pos: np.ndarray) -> Verdict:
+        """Take this tick's reactions (lost links, stops, firmware cuts); the most severe one, remembered and
+        printed when it is the worst so far."""
+        bits = self.bridge.supervisor()
+        for i, n in enumerate(self.names):
+            # the height before this tick: a drone cut while the host was paused has fallen by the time it is seen
+            z = self.last_seen.get(n, float(pos[i, 2]))
+            if np.isfinite(pos[i, 2]):
+                self.last_seen[n] = float(pos[i, 2])
+            fresh = self.links.silence[i] <= self.shield_cfg.link_timeout
+            if fresh and cut_by_firmware(bits.get(n, 0)) and n not in self.cut and self.state[n] != "idle":
+                self.cut[n] = (z, self.state[n])
+                self.state[n] = "stopped"
+            if decision.action[i] == Action.LOST and self.state[n] in (*AIRBORNE, "landed"):
+                if self.state[n] != "landed" or not confirmed_down(bits.get(n, 0), float(self.speed[i])):
+                    self.state[n] = "lost"
+            elif self.state[n] == "lost" and decision.action[i] != Action.LOST:
+                # heard again: it had the land command on every tick; it lands under watch from here
+                self.bridge.land([n], self._landing_time())
+                self.bridge.notify_stop([n])
+                self.state[n] = "landing"
+        stop = [n for i, n in enumerate(self.names) if decision.action[i] == Action.STOP and self.state[n] in AIRBORNE]
+        where = {n: pos[i] for i, n in enumerate(self.names)}
+        stop = spare_landing(stop, self.state, where, self.landing_from)
+        if stop:
+            self.bridge.emergency_stop(stop)
+            for n in stop:
+                self.cut.setdefault(n, (self.last_seen.get(n, float("nan")), self.state[n]))
+            self._set_state(stop, "stopped")
+        # the reaction taken: a landing drone spared the stop is landing
+        taken = decision.action.copy()
+        for i, n in enumerate(self.names):
+            if taken[i] == Action.STOP and n not in stop and self.state[n] != "stopped":
+                taken[i] = Action.LAND
+        scope = self._airborne() | np.array([self.state[n] in ("lost", "stopped") for n in self.names])
+        now = verdict(replace(decision, action=taken), scope)
+        if now.reaction > self.reaction.reaction:
+            self.reaction = now
+            if now.reaction >= Reaction.LAND_ONE:
+                self.progress(f"[deploy] {now.line()}")
+                if not self.aborted or self.aborted.startswith("shield:"):
+                    self.aborted = "shield: " + (",".join(now.rules) or "land")
+        return now
+
+    # ------------------------------------------------------------ separation under the planner
+    def _separate_planned(self, decision: ShieldDecision) -> list[str]:
+        """Drones under the onboard planner (taking off, landing) that the separation rule holds against a drone
+        with a valid pose are taken over: a hold setpoint (pushed apart) stops their planner; they land again once
+        clear. A grown obstacle (a drone without a valid pose) never stops a landing. The drones taken over."""
+        pairs = decision.pairs if decision.pairs is not None else np.zeros((0, 2), dtype=int)
+        real = [(a, b) for a, b in pairs if self.grow[a] == 0 and self.grow[b] == 0]
+        held = {k for pair in real for k in pair}
+        take = [
+            self.names[k]
+            for k in sorted(held)
+            if self.state[self.names[k]] in ("taking_off", "landing") and decision.action[k] == Action.HOLD
+        ]
+        if take:
+            zero = np.zeros(3)
+            stream = {n: (decision.setpoint[self.names.index(n)], zero, zero) for n in take}
+            self.bridge.post_setpoints(stream)
+            for n, (sp, _, _) in stream.items():
+                k = self.names.index(n)
+                self.prev_setpoint[k] = self.hold_at[k] = sp
+                self.notes.setdefault(n, []).append("separation_takeover")
+            self._set_state(take, "flying")
+        return take
+
+    def _reland(self, decision: ShieldDecision, land: bool = True) -> None:
+        """Drones taken over for separation (streaming, state ``flying``): those still in a conflict hold, those
+        clear again land (``land``) or hold where they are (a takeoff: the flight takes them over after it)."""
+        pairs = decision.pairs if decision.pairs is not None else np.zeros((0, 2), dtype=int)
+        busy = {self.names[k] for pair in pairs for k in pair}
+        flying = [n for n in self.names if self.state[n] == "flying"]
+        if not flying:
+            return
+        clear = [n for n in flying if n not in busy] if land else []
+        held = {n: (decision.setpoint[self.names.index(n)], np.zeros(3), np.zeros(3)) for n in flying if n not in clear}
+        held = {n: v for n, v in held.items() if np.isfinite(v[0]).all()}
+        self.bridge.post_setpoints(held)
+        self._land(clear)
+
+    # ------------------------------------------------------------ landing
+    def _poses_fresh(self) -> bool:
+        """Every airborne drone has a fresh pose (holding it in place means something)."""
+        _, _, age = self.measured()
+        air = self._airborne()
+        return bool((age[air] <= self.shield_cfg.stale_pose).all())
+
+    def _brake(self, seconds: float = 0.6) -> None:
+        """Hold every streaming drone for ``seconds``: a drone handed to the planner at speed would swing back
+        to where the land command found it."""
+        end = self.clock.now() + seconds
+        while self.clock.now() < end and any(self.state[n] == "flying" for n in self.names):
+            if not self._hold_tick():
+                return
+
+    def _land_all(self) -> None:
+        """Brake (when every pose is fresh), then land every drone still in the air, watching the shield (and
+        feeding the heartbeat) until they are down."""
+        if self._poses_fresh():
+            self._brake()
+        self._land([n for n in self.names if self.state[n] in AIRBORNE])
+        if any(self.state[n] == "landing" for n in self.names):
+            self._watch(self._landing_time() + 1.0, landing=True)
+
+    def _watch(self, seconds: float, landing: bool = False) -> None:
+        """Let the high-level commander fly ``seconds`` (takeoff, landing), logging ticks and watching the shield.
+
+        The shield's rules on poses, links, batteries and signals still apply: during a
+        takeoff a landing reaction ends the flight (everything lands); drones that are
+        confirmed down become ``landed``; a landing ends early once every landing drone is down.
+        """
+        end = self.clock.now() + seconds
+        while self.clock.now() < end:
+            tick = self._begin_tick()
+            pos, yaw, age = self.measured()
+            decision = self._shield(pos, age, pos)  # no setpoints of ours: the high-level commander flies
+            decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
+            self._log_tick(tick, -1, pos, yaw, decision, {}, None)
+            reaction = self._react(decision, pos)
+            self._separate_planned(decision)
+            self._reland(decision, land=landing)
+            self._call_lost()
+            self._touchdown(pos)
+            if not landing and reaction.reaction >= Reaction.LAND_ONE:
+                return
+            if landing and not any(self.state[n] == "landing" for n in self.names):
+                return
+
+    def _touchdown(self, pos: np.ndarray) -> None:
+        """Landing drones the firmware confirms down (over a live link) are ``landed``."""
+        bits = self.bridge.supervisor()
+        down = [
+            n
+            for i, n in enumerate(self.names)
+            if self.state[n] == "landing"
+            and self.links.silence[i] <= self.shield_cfg.link_timeout
+            and confirmed_down(bits.get(n, 0), float(self.speed[i]))
+        ]
+        self._set_state(down, "landed")
+
+    def _settle(self) -> None:
+        """After any end: ticks (the heartbeat) and land commands until every drone is landed, cut or the hard
+        limit (a landing, its confirmation and :data:`SETTLE_EXTRA`) passes."""
+        end = self.clock.now() + self._landing_time() + LANDED_CONFIRM + SETTLE_EXTRA
+        while self.clock.now() < end:
+            if all(self.state[n] in ("idle", "landed", "stopped") for n in self.names):
+                return
+            tick = self._begin_tick()
+            pos, yaw, age = self.measured()
+            decision = self._shield(pos, age, pos)
+            decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
+            self._react(decision, pos)
+            self._separate_planned(decision)
+            self._reland(decision)
+            self._land([n for n in self.names if self.state[n] == "taking_off"])
+            self._call_lost()
+            self._touchdown(pos)
+            self._log_tick(tick, -1, pos, yaw, decision, {}, None)
+
+    def endings(self) -> dict[str, str]:
+        """How each drone ended (see the module docstring)."""
+        out = {}
+        for n in self.names:
+            z = self.last_seen.get(n, float("nan"))
+            if n in self.cut:
+                at, was = self.cut[n]
+                out[n] = f"cut in the air at {at:.2f} m ({was})" if not at < 0.05 else f"stopped on the ground ({was})"
+            elif self.state[n] in ("landed", "idle"):
+                out[n] = "landed"
+            elif self.state[n] == "lost":
+                out[n] = f"lost (last seen at {z:.2f} m)"
+            else:
+                out[n] = f"not confirmed landed ({self.state[n]}, last seen at {z:.2f} m)"
+        return out
