@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from atdrone.cli_registry import add_member_location, add_registry, run_registry
+from atdrone.cli_zoos import add_zoos, run_zoos
 from atdrone.config import TASK_NAMES, ConfigError, read_json
 from atdrone.errors import UserError
 
@@ -163,7 +164,7 @@ def run_render(args: argparse.Namespace) -> int:
         _output_file(args.png, (".png",), "--png")
     found = resolve(args.policy, db=args.db, run=args.run, runs_dir=args.runs_dir) if args.policy else None
     cfg = load_task(args.task or (found.task if found is not None and found.task else "4p2e5o"))
-    zoo = load_zoo(args.zoo) if args.zoo is not None else None
+    zoo = load_zoo(args.zoo, cfg) if args.zoo is not None else None
     policy = found.policy() if found is not None else None
     partners = zoo.policies() if zoo is not None else None
     frames, summary = record_episode(
@@ -234,6 +235,7 @@ def add_train(subparsers: Any) -> argparse.ArgumentParser:
         "--tracking-uri", default=None, help="MLflow tracking URI (default MLFLOW_TRACKING_URI or ./mlflow.db)"
     )
     local = p.add_argument_group("local training (configs/train)")
+    local.add_argument("--task", default=None, help="override the config's task (a task name or JSON path)")
     local.add_argument("--total-env-steps", type=_positive_int, default=None, help="override the step budget")
     local.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time")
     local.add_argument("--device", default=None, help="auto (default), cpu or cuda for the PPO update")
@@ -307,7 +309,9 @@ def _say_what_was_kept(args: argparse.Namespace, service: bool) -> int:
 def _same_run_flags(args: argparse.Namespace) -> list[str]:
     """The flags that pick the same run again (name, seed, out folder), for the resume hint."""
     flags = []
-    for flag, value in (("--name", args.name), ("--seed", args.seed), ("--out-dir", args.out_dir)):
+    task = getattr(args, "task", None)
+    pairs = (("--name", args.name), ("--seed", args.seed), ("--out-dir", args.out_dir), ("--task", task))
+    for flag, value in pairs:
         if value is not None:
             flags.append(f"{flag} {value}")
     return flags
@@ -401,6 +405,11 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
         "--episodes", type=_episodes, default=500, help=f"episodes per seed and cell, <= {MAX_EPISODES:,} (default 500)"
     )
     p.add_argument("--seeds", type=_seed, nargs="+", default=[0], help="distinct evaluation seeds >= 0 (default: 0)")
+    p.add_argument(
+        "--cross-task",
+        action="store_true",
+        help="let a policy trained on one task play another (labelled NAME@TASK in the report)",
+    )
     p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
@@ -427,10 +436,15 @@ def run_evaluate(args: argparse.Namespace) -> int:
     found = resolve(args.policy, db=args.db, run=args.run, runs_dir=args.runs_dir)
     task_arg = args.task or found.task or "4p2e1o"
     tasks = [load_task(t) for t in (TASK_NAMES if task_arg == "all" else [task_arg])]
-    zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
+    one_task = tasks[0] if len(tasks) == 1 else None  # with --task all, each task's drones are found per cell
+    zoos = [load_zoo(z, one_task) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
     learner = found.policy()
-    for note in task_fit(learner, tasks):
+    notes = task_fit(learner, tasks, cross_task=args.cross_task)
+    for note in notes:
         print(f"atdrone evaluate: warning: {note}", file=sys.stderr)
+    trained_on = getattr(learner, "task", "")
+    if trained_on and any(t.name != trained_on for t in tasks):
+        learner.name = f"{learner.name}@{trained_on}"  # every record names the task it was trained on
     playable = [z for z in zoos if not z.missing]
     if not playable:  # nothing to play: the user's zoo is incomplete, one line and status 2
         missing = "; ".join(f"zoo {z.name} is missing {', '.join(z.missing)}" for z in zoos)
@@ -450,7 +464,15 @@ def run_evaluate(args: argparse.Namespace) -> int:
     with tqdm(total=total, unit="ep", desc="evaluate", file=sys.stderr, disable=args.no_progress) as bar:
         for task in tasks:  # the report is rewritten after each cell: a long grid keeps what it has played
             for zoo in zoos:
-                cells += evaluate_grid(learner, [task], [zoo], args.episodes, args.seeds, on_progress=bar.update)
+                cells += evaluate_grid(
+                    learner,
+                    [task],
+                    [zoo],
+                    args.episodes,
+                    args.seeds,
+                    on_progress=bar.update,
+                    cross_task=args.cross_task,
+                )
                 json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
     print(format_table(cells, args.policy, args.episodes, args.seeds))
     print(f"\nwrote {json_path} and {csv_path}")
@@ -576,6 +598,7 @@ COMMANDS: dict[str, Command] = {
     "evaluate": Command(add_evaluate, run_evaluate),
     "deploy": Command(add_deploy, run_deploy),
     "benchmark": Command(add_benchmark, run_benchmark),
+    "zoos": Command(add_zoos, run_zoos),
 }
 
 

@@ -15,7 +15,8 @@ A name is tried as, in this order:
    registry under the runs folder (``runs/*/registry.db``). Every run numbers its members
    the same way, so an id held by several runs is named with its run, ``hola_quick/hola-g3-0``
    (or ``--run hola_quick``); the short id is enough where one run has it;
-5. a zoo member: ``ZOO:MEMBER`` (``zoo2:sp_high``) or a member name of the shipped zoos.
+5. a zoo member: ``ZOO:MEMBER`` (``zoo1:greedy``) or a member name of the shipped zoos; a drone
+   trained per task names its task, ``zoo2:sp_high@4p2e5o``.
 
 :func:`resolve` returns a :class:`Resolved` (what the name was found as, its checkpoint
 file, the registry member when there is one); :meth:`Resolved.policy` loads it. A name
@@ -32,8 +33,18 @@ from pathlib import Path
 from typing import Any
 
 from atdrone.config import ConfigError
+from atdrone.fileio import user_cache
 from atdrone.policies.base import Policy, PolicyError
-from atdrone.policies.zoo import RULES, ZOO_NAMES, MemberSpec, build_policy, checkpoint_path, load_checkpoint, load_zoo
+from atdrone.policies.zoo import (
+    RULES,
+    TASK_FIELD,
+    ZOO_NAMES,
+    MemberSpec,
+    build_policy,
+    checkpoint_path,
+    load_checkpoint,
+    load_zoo,
+)
 from atdrone.registry import DEFAULT_PATH, ENV_VAR, Registry, RegistryError
 
 __all__ = ["PolicyNotFound", "Resolved", "resolve", "resolve_checkpoint", "resolve_policy"]
@@ -284,18 +295,21 @@ def _member(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tr
 def _zoo(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tried: list[str]) -> Resolved | None:
     zoo_name, sep, member_name = text.partition(":")
     zoos = [zoo_name] if sep else list(ZOO_NAMES)
-    wanted = member_name if sep else text
+    wanted, at, task = (member_name if sep else text).partition("@")  # a drone made per task: member@task
     known = []
     for z in zoos:
         try:
-            zoo = load_zoo(z)
+            zoo = load_zoo(z, task) if at else load_zoo(z)
         except ConfigError:
             tried.append(f"a zoo member (no zoo {z!r}; known: {', '.join(ZOO_NAMES)})")
             return None
         for spec in zoo.spec.members:
             if spec.name == wanted:
+                if TASK_FIELD in spec.checkpoint:
+                    tried.append(f"a zoo member ({zoo.name}:{wanted} is made per task: name one, {text}@4p2e1o)")
+                    return None
                 checkpoint = checkpoint_path(spec) if spec.kind == "checkpoint" else None
-                return Resolved(text, "zoo", spec.name, checkpoint, zoo_member=spec)
+                return Resolved(text, "zoo", spec.name, checkpoint, task=task or None, zoo_member=spec)
         known.append(f"{zoo.name}: {', '.join(zoo.names)}")
     tried.append(f"a zoo member ({'; '.join(known)})")
     return None

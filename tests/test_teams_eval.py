@@ -136,7 +136,7 @@ def test_match_partners_from_a_zoo_act_as_the_zoo_policy_on_their_slots():
 
 # -------------------------------------------------------------------- zoos
 def test_the_three_zoos_load_and_name_their_missing_members():
-    zoos = {name: load_zoo(name) for name in ZOO_NAMES}
+    zoos = {name: load_zoo(name, "4p2e1o") for name in ZOO_NAMES}
     assert zoos["zoo1"].names == ["greedy"] and not zoos["zoo1"].missing
     assert isinstance(zoos["zoo1"].policies()[0], GreedyPolicy)
     assert zoos["zoo2"].names == ["sp_high", "sp_low"]
@@ -200,7 +200,7 @@ def test_adaptive_teaming_view_passes_gymnasium_check_env(task: str):
 
 def test_adaptive_teaming_view_reports_the_team_and_ends_episodes_like_the_match():
     cfg = short_horizon("4p2e3o", 30)
-    view = AdaptiveTeamingEnv(cfg, zoo=load_zoo("zoo3") if not load_zoo("zoo3").missing else "zoo1")
+    view = AdaptiveTeamingEnv(cfg, zoo=load_zoo("zoo3", cfg) if not load_zoo("zoo3", cfg).missing else "zoo1")
     match = Match(BatchedPursuit(cfg, num_envs=1), view.zoo)
     obs, info = view.reset(seed=7)
     np.testing.assert_array_equal(obs, match.reset(seed=7)[0])
@@ -262,7 +262,7 @@ def test_a_greedy_team_captures_as_often_as_measured(task: str):
 
 def test_evaluation_is_deterministic_given_a_seed():
     task = short_horizon("4p2e5o", 150)
-    first = evaluate(VicsekPolicy(), task, "zoo3" if not load_zoo("zoo3").missing else "zoo1", episodes=40, seeds=(3,))
+    first = evaluate(VicsekPolicy(), task, "zoo3" if not load_zoo("zoo3", task).missing else "zoo1", episodes=40, seeds=(3,))
     second = evaluate(VicsekPolicy(), task, first.zoo, episodes=40, seeds=(3,))
     pd.testing.assert_frame_equal(first.records, second.records)
     other = evaluate(VicsekPolicy(), task, first.zoo, episodes=40, seeds=(4,))

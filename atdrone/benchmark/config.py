@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -165,9 +165,9 @@ def _check(cfg: BenchmarkConfig) -> None:
     if not cfg.zoos:
         raise ConfigError("zoos", "name at least one test zoo")
     for i, zoo in enumerate(cfg.zoos):
-        _check_zoo(zoo, f"zoos[{i}]")
+        _check_zoo(zoo, f"zoos[{i}]", cfg.tasks)
     if cfg.select_zoo:
-        _check_zoo(cfg.select_zoo, "select_zoo")
+        _check_zoo(cfg.select_zoo, "select_zoo", cfg.tasks)
         if cfg.select_zoo in cfg.zoos:
             raise ConfigError("select_zoo", f"{cfg.select_zoo!r} is a test zoo: choose on the validation zoo")
     if cfg.max_parallel < 0:
@@ -183,8 +183,9 @@ def _check(cfg: BenchmarkConfig) -> None:
             raise ConfigError(f"experiment.{key}", "set by the benchmark for every cell")
 
 
-def _check_zoo(zoo: str, path: str) -> None:
+def _check_zoo(zoo: str, path: str, tasks: Sequence[str]) -> None:
     try:
-        load_zoo(zoo).check()
+        for task in tasks:
+            load_zoo(zoo, task).check()
     except (ConfigError, PolicyError) as exc:
         raise ConfigError(path, str(exc)) from None

@@ -131,7 +131,7 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
         raise ConfigError("zoo", f"only best_response trains with zoo partners; {cfg.mode} would ignore {cfg.zoo!r}")
     if cfg.zoo:
         try:
-            load_zoo(cfg.zoo).check()
+            load_zoo(cfg.zoo, cfg.task).check()
         except (ConfigError, PolicyError) as exc:
             raise ConfigError("zoo", str(exc)) from None
     if cfg.init_checkpoint:
@@ -200,7 +200,7 @@ class Trainer:
                 raise ConfigError("start_std", f"{self.model.architecture()['class']} has no exploration std to set")
             with torch.no_grad():
                 self.model.log_std.fill_(math.log(cfg.start_std))
-        self.partners: list[Policy] = load_zoo(cfg.zoo).policies() if cfg.mode == "best_response" else []
+        self.partners: list[Policy] = load_zoo(cfg.zoo, cfg.task).policies() if cfg.mode == "best_response" else []
         self.worker = self._fresh_worker(0)
         self.tracker = tracker
         self.env_steps = 0

@@ -55,6 +55,8 @@ class FCP(Algorithm):
 
     @classmethod
     def check_experiment(cls, cfg: Any, experiment: Any, path: str) -> None:
+        if cfg.reuse:
+            check_pool(cfg.reuse, best_response=False, path=f"{path}.reuse", task=experiment.task)
         if not cfg.reuse and experiment.updates_per_generation < cfg.levels:
             raise ConfigError(
                 f"{path}.levels",

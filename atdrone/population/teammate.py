@@ -67,6 +67,7 @@ class PoolLearner(Algorithm):
 
     @classmethod
     def check_experiment(cls, cfg: Any, experiment: Any, path: str) -> None:
+        check_pool(cfg.pool, cfg.best_response, f"{path}.pool", task=experiment.task)
         slots = load_task(experiment.task).players.num_unctrl
         if not 0 <= cfg.min_partners <= slots:
             raise ConfigError(

@@ -267,7 +267,7 @@ class Coordinator:
         return (self.run_dir / "members" / f"{member}.pt").resolve()
 
     def zoo_members(self, zoo: str) -> list[str]:
-        loaded = load_zoo(zoo)
+        loaded = load_zoo(zoo, self.task)
         ids = []
         for spec in loaded.spec.members:
             ident = f"{loaded.name}:{spec.name}"
@@ -411,7 +411,7 @@ class Coordinator:
         self, zoo_name: str, episodes: int, members: Sequence[str] | None = None
     ) -> dict[str, dict[str, float]]:
         """Every population member (or ``members``) with partners from a zoo: SUC/COL/AST/REW per member."""
-        zoo = load_zoo(zoo_name)
+        zoo = load_zoo(zoo_name, self.task)
         if zoo.missing:
             return {}
         specs = list(zoo.spec.members)

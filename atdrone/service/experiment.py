@@ -148,14 +148,17 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
         raise ConfigError(
             "ppo.num_envs", f"{ppo.num_envs} environments cannot be split evenly over {cfg.num_workers} workers"
         )
+    if not 0.0 < ppo.lr <= MAX_LR:
+        raise ConfigError("ppo.lr", f"must be in (0, {MAX_LR:g}], got {ppo.lr!r}")
     section = cfg.algorithm_config()
+    _check_episode_counts(section, cfg.algorithm)
     ALGORITHMS[cfg.algorithm].check_experiment(section, cfg, cfg.algorithm)  # "<algorithm>.<key>"
     if isinstance(getattr(section, "zoo", None), str) and section.zoo:
-        _check_zoo(section.zoo, f"{cfg.algorithm}.zoo")
+        _check_zoo(section.zoo, f"{cfg.algorithm}.zoo", cfg.task)
     if cfg.final_zoo:
-        _check_zoo(cfg.final_zoo, "final_zoo")
+        _check_zoo(cfg.final_zoo, "final_zoo", cfg.task)
     if cfg.select_zoo:
-        _check_zoo(cfg.select_zoo, "select_zoo")
+        _check_zoo(cfg.select_zoo, "select_zoo", cfg.task)
         _check_disjoint(cfg.select_zoo)
     return cfg
 
@@ -185,10 +188,21 @@ def _check_settings(cfg: ExperimentConfig) -> None:
         raise ConfigError("learner_gpus", f"must be >= 0, got {cfg.learner_gpus}")
 
 
-def _check_zoo(zoo: str, path: str) -> None:
-    """ConfigError at ``path`` unless every member of ``zoo`` can be built (checkpoint files present and intact)."""
+def _check_episode_counts(section: Any, algorithm: str) -> None:
+    """ConfigError at ``<algorithm>.<key>`` for an episode count of the algorithm's section over
+    :data:`MAX_EPISODES` (each is played, so it bounds a generation's length)."""
+    if not is_dataclass(section):
+        return
+    for f in fields(section):
+        value = getattr(section, f.name)
+        if f.name.endswith("episodes") and isinstance(value, int) and value > MAX_EPISODES:
+            raise ConfigError(f"{algorithm}.{f.name}", f"must be at most {MAX_EPISODES:,}, got {value:,}")
+
+
+def _check_zoo(zoo: str, path: str, task: str) -> None:
+    """ConfigError at ``path`` unless every member of ``zoo`` can be built on ``task`` (files present and intact)."""
     try:
-        load_zoo(zoo).check()
+        load_zoo(zoo, task).check()
     except (ConfigError, PolicyError) as exc:
         raise ConfigError(path, str(exc)) from None
 

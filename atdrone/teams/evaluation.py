@@ -94,6 +94,8 @@ class Evaluation:
     learner: str
     per_seed: pd.DataFrame  # index seed, columns METRICS
     records: pd.DataFrame  # one row per episode
+    zoo_version: str = ""  # the zoo manifest's version of the task's zoos ("" for a zoo it does not list)
+    cross_task: tuple[str, ...] = ()  # partners trained on another task (``name@task``), played on purpose
 
     @property
     def mean(self) -> dict[str, float]:
@@ -122,6 +124,9 @@ class Evaluation:
 
     def summary(self) -> dict[str, object]:
         row: dict[str, object] = {"task": self.task, "zoo": self.zoo, "learner": self.learner}
+        row["zoo_version"] = self.zoo_version
+        if self.cross_task:
+            row["cross_task_partners"] = list(self.cross_task)
         row["episodes"] = len(self.records)
         row["seeds"] = len(self.per_seed)
         interval, over_seeds = self.interval, self.seed_interval
@@ -196,12 +201,13 @@ def crash_breakdown(records: pd.DataFrame) -> dict[str, float]:
     return {kind: 100.0 * float(counts.get(kind, 0)) / len(records) for kind in CRASH_KINDS}
 
 
-def task_fit(policy: Policy, tasks: Sequence[TaskConfig]) -> list[str]:
+def task_fit(policy: Policy, tasks: Sequence[TaskConfig], cross_task: bool = False) -> list[str]:
     """Check a trained policy against the tasks it is asked to play.
 
     A network reads 4 * (num_p + num_e) numbers per drone and pools the evaders, so a
-    different pursuer count is a different observation layout: ConfigError. Another
-    evader count or another task of the same shape plays, with a note (returned) saying so.
+    different pursuer count is a different observation layout: ConfigError. Another task
+    of the same shape is refused (ConfigError naming both tasks) unless ``cross_task``
+    asks for it; then it plays, with a note (returned) saying so.
     """
     trained_on = getattr(policy, "task", "")
     num_p, num_e = getattr(policy, "num_p", None), getattr(policy, "num_e", None)
@@ -215,6 +221,12 @@ def task_fit(policy: Policy, tasks: Sequence[TaskConfig]) -> list[str]:
                 "--task",
                 f"{policy.name} was trained on {trained_on} ({num_p} pursuers): its observation layout does not fit "
                 f"{task.name} ({players.num_p} pursuers)",
+            )
+        if task.name != trained_on and not cross_task:
+            raise ConfigError(
+                "--task",
+                f"{policy.name} was trained on {trained_on}, not on {task.name}: a cross-task evaluation must be "
+                "asked for (--cross-task)",
             )
         if players.num_e != num_e or task.name != trained_on:
             notes.append(
@@ -309,16 +321,21 @@ def episode_seeds(seed: int) -> tuple[int, int]:
 def evaluate(
     learner: Policy,
     task: TaskConfig | str,
-    zoo: Zoo | str,
+    zoo: Zoo | str | Path,
     episodes: int = 500,
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
+    cross_task: bool = False,
 ) -> Evaluation:
-    """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated."""
+    """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated.
+
+    A learner trained on another task is refused (ConfigError) unless ``cross_task``.
+    """
     import pandas as pd
 
     cfg = load_task(task)
-    zoo = load_zoo(zoo) if isinstance(zoo, str) else zoo
+    task_fit(learner, [cfg], cross_task)
+    zoo = (zoo if isinstance(zoo, Zoo) else load_zoo(zoo)).resolve(cfg)
     partners = zoo.policies()
     records = pd.concat(
         [run_episodes(learner, cfg, partners, episodes, seed=s, on_progress=on_progress) for s in seeds],
@@ -326,8 +343,21 @@ def evaluate(
     )
     per_seed = pd.DataFrame([{"seed": s, **metrics(g)} for s, g in records.groupby("seed")]).set_index("seed")
     return Evaluation(
-        task=cfg.name, zoo=zoo.name, learner=getattr(learner, "name", "learner"), per_seed=per_seed, records=records
+        task=cfg.name,
+        zoo=zoo.name,
+        learner=getattr(learner, "name", "learner"),
+        per_seed=per_seed,
+        records=records,
+        zoo_version=zoo.version if _is_shipped(zoo) else "",
+        cross_task=tuple(zoo.cross_task()),
     )
+
+
+def _is_shipped(zoo: Zoo) -> bool:
+    """Whether ``zoo`` is one of the manifest's documents (a user's own zoo has no manifest version)."""
+    from atdrone.policies.manifest import POOLS, ZOOS
+
+    return zoo.name in ZOOS or zoo.name in POOLS
 
 
 @dataclass(frozen=True)
@@ -347,19 +377,20 @@ def evaluate_grid(
     episodes: int = 500,
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
+    cross_task: bool = False,
 ) -> list[GridCell]:
     """Evaluate ``learner`` on every task x zoo (row-major: tasks outer, zoos inner).
 
     A zoo with missing members is not played: its cells list the missing members.
     """
     cfgs = [load_task(t) for t in tasks]
-    loaded = [load_zoo(z) if isinstance(z, str) else z for z in zoos]
+    loaded = [z if isinstance(z, Zoo) else load_zoo(z) for z in zoos]
     cells = []
     for cfg in cfgs:
-        for zoo in loaded:
+        for zoo in (z.resolve(cfg) for z in loaded):
             if zoo.missing:
                 cells.append(GridCell(cfg.name, zoo.name, None, tuple(zoo.missing)))
             else:
-                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress)
+                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress, cross_task=cross_task)
                 cells.append(GridCell(cfg.name, zoo.name, result))
     return cells

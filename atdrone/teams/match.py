@@ -49,7 +49,9 @@ class Match:
         sampler: PartnerSampler | None = None,
     ) -> None:
         self.core = core
-        self.partners: list[Policy] = partners.policies() if isinstance(partners, Zoo) else list(partners)
+        self.partners: list[Policy] = (
+            partners.resolve(core.cfg.name).policies() if isinstance(partners, Zoo) else list(partners)
+        )
         self.partner_names = [p.name for p in self.partners]
         self._names = np.array(self.partner_names, dtype=object)
         self.num_ctrl = core.cfg.players.num_ctrl if num_ctrl is None else num_ctrl

@@ -71,11 +71,17 @@ def shared_members(pool: Zoo, zoos: Sequence[str] = ZOO_NAMES) -> list[str]:
     return [f"{m.name} = {', '.join(seen[identity(m)])}" for m in pool.spec.members if identity(m) in seen]
 
 
-def check_pool(name_or_path: str, best_response: bool, path: str) -> Zoo:
-    """The pool, refused (ConfigError at ``path``) when it shares a member with Zoos 1-3 unless ``best_response``."""
+def check_pool(name_or_path: str, best_response: bool, path: str, task: str | None = None) -> Zoo:
+    """The pool, refused (ConfigError at ``path``) when it shares a member with Zoos 1-3 unless ``best_response``.
+
+    With ``task`` every member is built on that task (a pool of drones per task is checked only then).
+    """
     try:
         pool = load_pool(name_or_path)
-        pool.check()
+        if task is not None:
+            pool.resolve(task).check()
+        elif not pool.per_task:
+            pool.check()
     except ConfigError as exc:  # the document's own field, when it names one
         where = "" if exc.path == "<root>" else f"{exc.path}: "
         raise ConfigError(path, where + str(exc).split(": ", 1)[1]) from None
