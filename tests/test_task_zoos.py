@@ -128,3 +128,19 @@ def test_a_per_task_zoo_cannot_play_before_it_is_resolved_for_a_task() -> None:
         load_zoo("zoo2").policies()
     with pytest.raises(ZooError, match="resolved for task 4p2e1o, not 4p2e3o"):
         load_zoo("zoo2", "4p2e1o").resolve("4p2e3o")
+
+
+def test_a_benchmark_folder_made_with_other_partners_is_refused_and_its_cells_not_counted(tmp_path, monkeypatch):
+    from atdrone.benchmark import job
+    from atdrone.benchmark.config import parse_benchmark
+    from atdrone.errors import UserError
+
+    cfg = parse_benchmark("quick", tasks=["4p2e1o"], zoos=["zoo1"], out_dir=str(tmp_path))
+    job._check_folder(cfg)
+    saved = json.loads((cfg.folder / job.CONFIG_FILE).read_text())
+    assert saved["zoo_versions"] == {"4p2e1o": load_manifest()["tasks"]["4p2e1o"]["version"]}  # type: ignore[index]
+    before = cfg.digest()
+    monkeypatch.setattr(manifest_module, "task_version", lambda task: "zv-retrained")
+    assert cfg.digest() != before  # a finished cell's record names the digest: it no longer counts
+    with pytest.raises(UserError, match=r"holds other partners \(zoo versions .*zv-retrained"):
+        job._check_folder(cfg)

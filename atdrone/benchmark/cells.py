@@ -192,6 +192,7 @@ def run_cell(cfg: BenchmarkConfig, cell: Cell, tracking_uri: str | None) -> dict
     torch.set_num_threads(1)
     t0, cpu0 = time.perf_counter(), time.process_time()
     record: dict[str, Any] = {"cell": cell.to_dict(), "name": cell.name, "benchmark": cfg.digest()}
+    record["zoo_version"] = cfg.zoo_versions()[cell.task]
     budget = {"env_steps": 0, "learner_samples": 0, "eval_env_steps": 0}
     workers = 0
     if cell.kind == "floor":

@@ -88,9 +88,17 @@ class BenchmarkConfig:
         return json.loads(json.dumps(asdict(self)))
 
     def digest(self) -> str:
-        """What makes two configs the same benchmark: every key but where its files go."""
+        """What makes two configs the same benchmark: every key but where its files go, and the partners:
+        the zoo manifest's version of each task (a drone retrained is another benchmark, never mixed in)."""
         doc = {k: v for k, v in self.to_dict().items() if k not in PLACEMENT}
+        doc["zoo_versions"] = self.zoo_versions()
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+    def zoo_versions(self) -> dict[str, str]:
+        """Task -> the version of its zoos in the zoo manifest."""
+        from atdrone.policies.manifest import task_version
+
+        return {task: task_version(task) for task in self.tasks}
 
     @property
     def folder(self) -> Path:

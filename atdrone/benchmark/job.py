@@ -64,11 +64,16 @@ def _check_folder(cfg: BenchmarkConfig) -> None:
     if path.is_file():
         saved = read_json(path, "benchmark config")
         if saved.get("digest") != cfg.digest():
-            raise RunError(
-                f"{cfg.folder} holds a different benchmark (config digest {saved.get('digest')} != {cfg.digest()}): "
-                "run it with its own config, or give this one another name"
+            zoos = saved.get("zoo_versions")
+            other = (
+                f"other partners (zoo versions {zoos} != {cfg.zoo_versions()}): a partner drone changed, so its cells "
+                "cannot be mixed with new ones; give this run another name or --out-dir"
+                if zoos is not None and zoos != cfg.zoo_versions()
+                else f"a different benchmark (config digest {saved.get('digest')} != {cfg.digest()}): run it with its "
+                "own config, or give this one another name"
             )
-    _write_json(path, {"digest": cfg.digest(), "config": cfg.to_dict()})
+            raise RunError(f"{cfg.folder} holds {other}")
+    _write_json(path, {"digest": cfg.digest(), "config": cfg.to_dict(), "zoo_versions": cfg.zoo_versions()})
 
 
 def cell_cpus(cfg: BenchmarkConfig, cell: Cell) -> int:

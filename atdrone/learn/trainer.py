@@ -392,7 +392,11 @@ def run_training(cfg: TrainConfig, resume: bool = False, progress: bool = True, 
     experiment = cfg.experiment or cfg.name
     with tracker.run(experiment, f"{cfg.name}-seed{cfg.seed}", run_id=trainer.run_id) as run_id:
         trainer.run_id = run_id
+        from atdrone.policies.manifest import task_version
+
+        zoo_version = task_version(trainer.task.name)  # the partners its evaluations (best response) play
         tracker.log_params({"config": asdict(cfg), "ppo": asdict(trainer.ppo), "task": trainer.task.name})
+        tracker.set_tags({"atdrone.zoo_version": zoo_version})
         trainer.run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(trainer.run_dir / "config.json", json.dumps(asdict(cfg), indent=2).encode())
         trainer.train(progress=progress)

@@ -38,6 +38,7 @@ from atdrone.config import TaskConfig, load_task
 from atdrone.learn.learner import LearnerSpec
 from atdrone.learn.ppo import ppo_config
 from atdrone.models.checkpoint import load_checkpoint
+from atdrone.policies.manifest import task_version
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Team, Trained
 from atdrone.registry import find_registry_actor, member_id
@@ -335,7 +336,7 @@ class Coordinator:
 
     def register(self, trained: Trained, parents: Sequence[str], tags: Mapping[str, Any] | None = None) -> str:
         member = member_id(self.cfg.algorithm, self.generation, self.registered)
-        tags = {**self.algorithm.member_tags(), **dict(tags or {})}
+        tags = {**self.algorithm.member_tags(), "zoo_version": task_version(self.task.name), **dict(tags or {})}
         self.registered += 1
         self.new_members.append(member)
         last = trained.history[-1] if trained.history else {}
