@@ -71,6 +71,7 @@ def blocks(page: Path) -> list[Block]:
 ALL = [b for page in PAGES for b in blocks(page)]
 RUNNABLE = [b for b in ALL if b.lang in RUN and b.marker is None]
 AFTER_DEMO = [b for b in ALL if b.lang in RUN and b.marker == "demo"]
+RAY_JOBS = [b for b in ALL if b.lang == "sh" and b.marker == "ray"]
 
 
 def test_the_pages_have_blocks_and_some_run() -> None:
@@ -145,6 +146,42 @@ def test_block_runs_after_the_demo(block: Block, tmp_path: Path) -> None:
     output = f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
     assert done.returncode == 0, f"{block.name} failed ({done.returncode}):\n{output}"
     assert "Traceback" not in done.stderr and "Warning" not in done.stderr, f"{block.name}:\n{output}"
+
+
+@pytest.mark.skipif(not os.environ.get("ATDRONE_DOCS_DEMO"), reason="after make demo, with ATDRONE_DOCS_DEMO=1")
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("block", RAY_JOBS, ids=lambda b: b.name)
+def test_the_ray_job_block_runs_after_the_demo_and_stops_only_its_head(block: Block) -> None:
+    """The walkthrough as written, in the repository root after ``make demo``: it starts a Ray head of its own,
+    submits a training job under a fresh run name and an evaluation job, and stops that head alone; the
+    demo's run and champion are untouched."""
+    import shutil
+    import socket
+
+    import mlflow
+
+    run_dir = ROOT / "runs" / "hola_job"
+    shutil.rmtree(run_dir, ignore_errors=True)  # a run of that name from an earlier try: the job starts afresh
+    store = f"sqlite:///{ROOT / 'mlflow.db'}"
+    champion = mlflow.MlflowClient(store).get_model_version_by_alias("atdrone-hola_quick", "champion").version
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    env.pop("RAY_ADDRESS", None)
+    done = subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", block.text], cwd=ROOT, env=env, capture_output=True, text=True
+    )
+    output = f"{done.stdout[-4000:]}\n{done.stderr[-4000:]}"
+    try:
+        assert done.returncode == 0, f"{block.name} failed ({done.returncode}):\n{output}"
+        assert done.stdout.count("succeeded") >= 2, output  # both jobs
+        assert "run: hola_job" in done.stdout and (run_dir / "registry.db").is_file()
+        after = mlflow.MlflowClient(store).get_model_version_by_alias("atdrone-hola_quick", "champion").version
+        assert after == champion  # the job's run registered atdrone-hola_job, and the demo's champion stayed
+        with socket.socket() as probe:  # the head's GCS port is closed: the block stopped what it started
+            assert probe.connect_ex(("127.0.0.1", 6390)) != 0
+    finally:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        (ROOT / "ray_head.log").unlink(missing_ok=True)
 
 
 def _serves(command: list[str], env: dict[str, str]) -> None:

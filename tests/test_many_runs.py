@@ -117,6 +117,9 @@ def test_a_second_run_never_moves_the_first_runs_champion(in_runs: tuple[Path, s
     beta = client.get_model_version_by_alias("atdrone-beta", "champion")  # --name renamed the model too
     assert alpha.tags["run"] == "alpha" and beta.tags["run"] == "beta"
     assert client.get_experiment_by_name("beta") is not None  # and the experiment
+    parent = client.get_run(alpha.run_id)  # the population in the runs table: main numbers and a description
+    assert {"validation_SUC_best", "validation_SUC_mean", "zoo1_SUC_champion"} <= set(parent.data.metrics)
+    assert "| member |" in parent.data.tags["mlflow.note.content"]
     # a later run that registers a better member under the first run's model does not take its alias
     tracker = Tracker(uri)
     checkpoint = Path(in_runs[0]) / "runs" / "beta" / "members" / "sp-g0-0.pt"

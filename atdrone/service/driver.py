@@ -276,7 +276,6 @@ def _generations(
     """Ask the coordinator for the remaining generations, logging each; then the final evaluation."""
     import ray
 
-    from atdrone.policies.manifest import task_version
     from atdrone.population import ALGORITHMS
     from atdrone.tracking import Tracker
 
@@ -303,7 +302,6 @@ def _generations(
             {
                 "atdrone.algorithm": cfg.algorithm,
                 "atdrone.task": cfg.task,
-                "atdrone.zoo_version": task_version(cfg.task),  # the partners every score of the run was measured with
                 **{f"atdrone.{k}": v for k, v in labels.items()},
             }
         )
@@ -414,7 +412,15 @@ def _log_generation(
             metrics["eval/COL"] = float(np.mean([m.metrics["COL"] for m in report.matches]))
         for t in report.training:  # partner slots each member filled in the learner's training episodes
             metrics.update({f"pop/drawn/{t.member}/{m}": n for m, n in slot_counts(t.drawn).items()})
-        tracker.log_metrics(metrics, step=g)
+        from atdrone.tracking import member_series
+
+        scalars, series = member_series(metrics, report.population)  # per-member values: one chart per name
+        tracker.log_metrics(scalars, step=g)
+        tracker.log_series(series)
+        tracker.describe(
+            "Members, in the order of the `pop/...` series' steps: "
+            + ", ".join(f"{i} {m}" for i, m in enumerate(report.population))
+        )
         for name, document in report.documents.items():
             _write_json(gen_dir / name, document)
             tracker.log_artifact(gen_dir / name)
@@ -520,8 +526,18 @@ def _finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig
         selected[f"eval/{cfg.final_zoo}/selected_SUC"] = float(
             table.loc[table["member"] == best, f"{cfg.final_zoo}_SUC"].iloc[0]
         )
+    from atdrone.tracking import population_columns, population_markdown
+
+    rows = table.to_dict("records")
+    selected.update(population_columns(rows, cfg.select_zoo, cfg.final_zoo, best))  # the runs table's columns
     if selected:
         tracker.log_metrics(selected, step=cfg.generations, once=True)
+    title = (
+        f"{cfg.algorithm} on {cfg.task}, {cfg.generations} generations: best member **{best}** (chosen on "
+        f"{cfg.select_zoo or 'the last generation'}; {cfg.final_zoo or 'no'} test zoo), {cfg.final_episodes} "
+        "episodes per member and zoo"
+    )
+    tracker.describe(population_markdown(rows, title))
     model = _log_best(tracker, best, score, run_dir, cfg)
     budget = ray.get(coordinator.state.remote())["budget"]
     _write_json(run_dir / SUMMARY_FILE, {"best": best, "selected_on": cfg.select_zoo, "budget": budget, "model": model})
@@ -560,6 +576,8 @@ def _log_best(tracker: Any, best: str, score: float | None, run_dir: Path, cfg: 
 
 def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri: str) -> str:
     """The end-of-run text: the population table and where to look (run dir, registry, MLflow)."""
+    from atdrone.tracking import champion_version, ui_model_link
+
     with pd.option_context("display.float_format", "{:.2f}".format, "display.width", 120):
         table = summary["population"].to_string(index=False)
     done = (
@@ -576,7 +594,8 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
             + f"; run directory: {summary['run_dir']}",
             "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
             f"registry: atdrone registry --db {registry_path(cfg, Path(summary['run_dir']))} list",
-            f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion)",
+            f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion = version "
+            f"{champion_version(model_name(cfg), tracking_uri) or 'none'}; {ui_model_link(model_name(cfg))})",
             f"MLflow: experiment {cfg.experiment or cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
             f"browse with: mlflow ui --backend-store-uri {tracking_uri}",
         ]
