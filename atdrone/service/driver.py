@@ -276,6 +276,7 @@ def _generations(
     """Ask the coordinator for the remaining generations, logging each; then the final evaluation."""
     import ray
 
+    from atdrone.policies.manifest import task_version
     from atdrone.population import ALGORITHMS
     from atdrone.tracking import Tracker
 
@@ -302,6 +303,7 @@ def _generations(
             {
                 "atdrone.algorithm": cfg.algorithm,
                 "atdrone.task": cfg.task,
+                "atdrone.zoo_version": task_version(cfg.task),  # the partners every score of the run was measured with
                 **{f"atdrone.{k}": v for k, v in labels.items()},
             }
         )
