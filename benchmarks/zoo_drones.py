@@ -1,6 +1,6 @@
 """The Unseen Zoo 2 drones measured by the evaluation protocol, printed as JSON.
 
-For each self-play drone (configs/zoos/checkpoints/*.pt): its self-play metrics (the
+For each self-play drone (configs/zoos/checkpoints/<task>/*.pt): its self-play metrics (the
 drone in every pursuer slot, the number the zoo's skill levels refer to: about 70 % and
 54 % SUC) and its metrics as the learner with each zoo's partners, on the task it was
 trained on. Optionally compares a best response (--br PATH) with self-play policies
@@ -47,7 +47,7 @@ def main() -> None:
         return {m: float(np.mean([p[m] for p in per_seed])) for m in METRICS}
 
     out: dict[str, object] = {"benchmark": "zoo_drones", "episodes": args.episodes, "seeds": args.seeds}
-    drones = args.drones if args.drones is not None else sorted(CHECKPOINTS.glob("*.pt"))
+    drones = args.drones if args.drones is not None else sorted(CHECKPOINTS.glob("*/*.pt"))
     for path in [] if args.only_br else drones:
         name = path.parent.name if path.stem == "last" else path.stem  # a run's runs/NAME/last.pt is NAME
         header = read_header(path)

@@ -794,12 +794,12 @@ def test_a_run_saved_with_ppo_overrides_only_resumes_with_the_values_of_its_time
         check_resume(run_dir, today, RESUME_MAY_CHANGE, ppo.saved_ppo_document)
 
 
-COMMITTED_DRONES = sorted((CONFIG_DIR / "zoos" / "checkpoints").glob("*.pt")) + sorted(
-    (CONFIG_DIR / "pools" / "checkpoints").glob("*.pt")
+COMMITTED_DRONES = sorted((CONFIG_DIR / "zoos" / "checkpoints").glob("*/*.pt")) + sorted(
+    (CONFIG_DIR / "pools" / "checkpoints").glob("*/*.pt")
 )
 
 
-@pytest.mark.parametrize("checkpoint", COMMITTED_DRONES, ids=lambda p: p.stem)
+@pytest.mark.parametrize("checkpoint", COMMITTED_DRONES, ids=lambda p: f"{p.parent.name}/{p.stem}")
 def test_a_committed_drones_recipe_trains_with_the_ppo_values_in_its_header(checkpoint: Path) -> None:
     """configs/train/<name>.json, the recipe its README names, loads with every PPO value the drone was trained
     with (its header): a later change of a PPO default cannot change what the recipe trains."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import warnings
 from pathlib import Path
 
@@ -155,11 +156,14 @@ def test_evaluate_refuses_a_policy_whose_observation_layout_does_not_fit(tmp_pat
     _one_line_error(capsys, [*argv, "--out-dir", str(tmp_path)], "trained on 4p2e1o (4 pursuers): its observation")
 
 
-def test_evaluate_warns_when_a_policy_plays_another_task(tmp_path, capsys):
+def test_evaluate_refuses_a_policy_of_another_task_unless_asked_and_then_labels_it(tmp_path, capsys):
     argv = ["evaluate", "--policy", _policy(tmp_path), "--task", "4p3e5o", "--zoo", "zoo1", "--episodes", "2"]
-    assert main([*argv, "--out-dir", str(tmp_path), "--no-progress"]) == 0
+    _one_line_error(capsys, [*argv, "--out-dir", str(tmp_path)], "trained on 4p2e1o, not on 4p3e5o")
+    assert main([*argv, "--cross-task", "--out-dir", str(tmp_path), "--no-progress"]) == 0
     err = capsys.readouterr().err
     assert "warning: policy was trained on 4p2e1o (4p2e) and plays 4p3e5o (4p3e)" in err
+    report = json.loads(next(tmp_path.glob("*_4p3e5o_zoo1.json")).read_text())
+    assert "policy@4p2e1o" in json.dumps(report)  # the record names the task it was trained on
 
 
 def test_evaluate_refuses_a_directory_as_policy(tmp_path, capsys):
@@ -278,7 +282,7 @@ def test_a_legacy_header_without_its_digest_loads_with_a_warning(tmp_path):
 
 
 def test_the_committed_zoo_checkpoints_carry_the_header_digest():
-    for path in sorted((CONFIG_DIR / "zoos" / "checkpoints").glob("*.pt")):
+    for path in sorted((CONFIG_DIR / "zoos" / "checkpoints").glob("*/*.pt")):
         header = json.loads(_header_line(path)[1])
         assert "header_sha256" in header, path
         with warnings.catch_warnings():
@@ -364,3 +368,65 @@ def test_an_oversized_file_is_not_read_as_a_checkpoint(tmp_path, monkeypatch):
     monkeypatch.setattr("atdrone.models.checkpoint.MAX_FILE_BYTES", 1_000)
     with pytest.raises(CheckpointError, match=r"more than any checkpoint \(1,000\): not one"):
         load_checkpoint(path)
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused_when_loaded(tmp_path, capsys):
+    """A diverged update saved NaN weights: loading refuses them (evaluate: one line, exit 2), instead of a policy
+    that acts on NaN and fails later."""
+    torch.manual_seed(0)
+    model = ActorCritic(NetConfig(entity_dim=8, hidden=16))
+    with torch.no_grad():
+        next(model.parameters())[0] = float("nan")
+    path = tmp_path / "nan.pt"
+    save_checkpoint(path, model, {"task": "4p2e1o", "num_p": 4, "num_e": 2})
+    with pytest.raises(CheckpointError, match=r"non-finite weights \(NaN or inf\) in "):
+        load_checkpoint(path)
+    argv = ["evaluate", "--policy", str(path), "--zoo", "zoo1", "--episodes", "1", "--out-dir", str(tmp_path)]
+    _one_line_error(capsys, argv, "non-finite weights")
+
+
+@pytest.mark.parametrize(
+    "change, expect",
+    [
+        ({"ppo": {"lr": 1e308}}, r"^ppo\.lr: must be in \(0, 1\], got 1e\+308"),
+        ({"hola": {"max_episodes": 10**12}}, r"^hola\.max_episodes: must be at most 1,000,000"),
+    ],
+)
+def test_experiment_learning_rates_and_episode_counts_are_bounded(change, expect):
+    with pytest.raises(ConfigError, match=expect):
+        load_experiment({**EXPERIMENT, "algorithm": "hola", **change})
+
+
+def test_weights_names_and_model_version_tags_never_reach_outside_their_folders(tmp_path, monkeypatch, mlflow_store):
+    """``weights:../x`` would read x.json and x.pt one level above a results folder's weights; a model version
+    whose checkpoint_file tag is ``../../x.pt`` would read a file outside the model cache. Both are planted with a
+    valid checkpoint and both are refused."""
+    import hashlib
+
+    import mlflow
+
+    from atdrone.fileio import user_cache
+    from atdrone.policies.base import PolicyError
+    from atdrone.resolve import WEIGHTS_ENV, resolve
+    from atdrone.tracking import Tracker
+
+    planted = Path(_policy(tmp_path))
+    results = tmp_path / "results" / "bench"
+    (results / "weights").mkdir(parents=True)
+    shutil.copyfile(planted, results / "x.pt")
+    manifest = {"sha256": hashlib.sha256(planted.read_bytes()).hexdigest(), "task": "4p2e1o"}
+    (results / "x.json").write_text(json.dumps(manifest))
+    monkeypatch.setenv(WEIGHTS_ENV, str(results))
+    with pytest.raises(PolicyError, match=r"no '\.\.'"):
+        resolve("weights:../x")
+
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    tracker = Tracker(uri)
+    with tracker.run("tags", "run"):
+        version = tracker.register_checkpoint(planted, "atdrone-tags", None, {"member": "m"})
+    mlflow.MlflowClient(tracking_uri=uri).set_model_version_tag(
+        "atdrone-tags", version, "checkpoint_file", "../../x.pt"
+    )
+    shutil.copyfile(planted, user_cache("x.pt"))
+    with pytest.raises(PolicyError, match="outside the model cache"):
+        resolve(f"models:/atdrone-tags/{version}", tracking_uri=uri)
