@@ -28,10 +28,9 @@ from typing import Any
 from atdrone.cli_registry import add_member_location, add_registry, run_registry
 from atdrone.cli_zoos import add_zoos, run_zoos
 from atdrone.config import TASK_NAMES, ConfigError, read_json
-from atdrone.errors import UserError
+from atdrone.errors import UserError, interrupt_exit_code, interrupt_on_signals
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
-EXIT_INTERRUPTED = 130  # Ctrl-C
 POLICY_HELP = (
     "greedy, vicsek, a member id (hola-g3-0, or hola_quick/hola-g3-0 where several runs have it), models:/NAME@ALIAS, "
     "weights:METHOD/TASK, a checkpoint PATH or ZOO:MEMBER"
@@ -266,12 +265,13 @@ def run_train(args: argparse.Namespace) -> int:
 
         os.environ["MLFLOW_TRACKING_URI"] = tracking_uri(args.tracking_uri)
     service = "algorithm" in document
+    interrupt_on_signals()  # SIGTERM as Ctrl-C (a service run installs it again once Ray has started)
     try:
         return _train_service(args) if service else _train_local(args)
-    except BaseException as exc:  # a Ctrl-C, or an error that carries one
+    except BaseException as exc:  # a Ctrl-C or SIGTERM, or an error that carries one
         if not interrupted(exc):
             raise
-        return _say_what_was_kept(args, service)
+        return _say_what_was_kept(args, service, exc)
 
 
 def interrupted(exc: BaseException) -> bool:
@@ -288,22 +288,24 @@ def interrupted(exc: BaseException) -> bool:
     return False
 
 
-def _say_what_was_kept(args: argparse.Namespace, service: bool) -> int:
-    """The interrupted run's one line: what was kept and the command that resumes (re-raises before a run)."""
+def _say_what_was_kept(args: argparse.Namespace, service: bool, exc: BaseException, what: str = "interrupted") -> int:
+    """The interrupted (or failed: ``what``) run's one line: what was kept and the command that resumes; the exit
+    code of the signal (143 SIGTERM, 130 SIGINT). Re-raises an interrupt that came before a run."""
     where = getattr(args, "run_dir", None)
     if where is None:
-        raise KeyboardInterrupt
+        raise exc
     kept = _kept_service(where) if service else _kept_local(where)
     again = f"atdrone train {args.config}" + "".join(f" {a}" for a in _same_run_flags(args))
     if kept is None:
+        born = service and (where / "service_state.json").exists()  # a born run is resumed, never started again
         print(
-            f"atdrone train: interrupted before the first checkpoint: nothing was kept in {where}; "
-            f"start again with: {again}",
+            f"atdrone train: {what} before the first checkpoint: nothing was kept in {where}; "
+            f"start again with: {again}" + (" --resume" if born else ""),
             file=sys.stderr,
         )
     else:
-        print(f"atdrone train: interrupted; kept {kept} in {where}; resume with: {again} --resume", file=sys.stderr)
-    return EXIT_INTERRUPTED
+        print(f"atdrone train: {what}; kept {kept} in {where}; resume with: {again} --resume", file=sys.stderr)
+    return interrupt_exit_code(exc)
 
 
 def _same_run_flags(args: argparse.Namespace) -> list[str]:
@@ -376,7 +378,12 @@ def _train_service(args: argparse.Namespace) -> int:
         args.config, seed=args.seed, name=args.name, out_dir=args.out_dir, generations=args.generations
     )
     args.run_dir = Path(cfg.out_dir) / cfg.name
-    summary = run_experiment(cfg, address=args.address, resume=args.resume, progress=not args.no_progress)
+    try:
+        summary = run_experiment(cfg, address=args.address, resume=args.resume, progress=not args.no_progress)
+    except Exception as exc:
+        if interrupted(exc) or args.debug:
+            raise
+        return _service_failed(args, exc)
     from atdrone.tracking import tracking_uri, ui_hint
 
     print(format_summary(cfg, summary, tracking_uri()))
@@ -486,6 +493,22 @@ def run_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _service_failed(args: argparse.Namespace, exc: Exception) -> int:
+    """A population run that failed, in one line by kind (bad input: exit 2; a fault: what was kept, the resume
+    command, exit 1; a bug: an internal error, exit 1), never a Ray traceback."""
+    from atdrone.service.faults import EXIT_FAULT, explain, one_line
+
+    fault = explain(exc)
+    if fault is None:  # a bug: its own error, not Ray's wrapper (main names it an internal error)
+        root = getattr(exc, "cause", None)
+        raise RuntimeError(f"{type(root or exc).__name__}: {one_line(root or exc)}") from exc
+    if fault.code != EXIT_FAULT:
+        _error(args, fault.line)
+        return fault.code
+    _say_what_was_kept(args, True, exc, what=f"error: {fault.line}")
+    return fault.code
+
+
 # ------------------------------------------------------------- benchmark
 def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -508,11 +531,31 @@ def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run_benchmark(args: argparse.Namespace) -> int:
-    from atdrone.benchmark.cells import load_benchmark
+    from atdrone.benchmark.cells import cells, load_benchmark
     from atdrone.benchmark.job import run_benchmark as run
 
     cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)
-    summary = run(cfg, address=args.address, tracking_uri=args.tracking_uri, progress=not args.no_progress)
+    interrupt_on_signals()  # SIGTERM as Ctrl-C (installed again once Ray has started)
+    try:
+        summary = run(cfg, address=args.address, tracking_uri=args.tracking_uri, progress=not args.no_progress)
+    except BaseException as exc:
+        if not interrupted(exc) or args.debug:
+            raise
+        from atdrone.benchmark.job import finished
+
+        flags = (
+            ("--out-dir", args.out_dir),
+            ("--results-dir", args.results_dir),
+            ("--tracking-uri", args.tracking_uri),
+            ("--address", args.address),
+        )
+        again = f"atdrone benchmark {args.config}" + "".join(f" {f} {v}" for f, v in flags if v is not None)
+        print(
+            f"atdrone benchmark: interrupted; kept {len(finished(cfg))} finished cell(s) of {len(cells(cfg))} (an "
+            f"unfinished one resumes from its last generation) in {cfg.folder}; resume with: {again}",
+            file=sys.stderr,
+        )
+        return interrupt_exit_code(exc)
     print(f"{cfg.name}: {len(summary['records'])} cells; report {cfg.results / 'report.md'}")
     for m in summary["weights"]:
         print(f"  weights:{m['method']}/{m['task']} (seed {m['seed']}, chosen on {m['selected_on']['zoo'] or '-'})")
@@ -626,13 +669,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return COMMANDS[args.command].run(args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         _error(args, "interrupted")
-        return 130
+        return interrupt_exit_code(exc)
     except Exception as exc:
         if interrupted(exc):  # a Ctrl-C that another error carries (one during a module's initialisation)
             _error(args, "interrupted")
-            return 130
+            return interrupt_exit_code(exc)
         if args.debug:
             raise
         if isinstance(exc, (UserError, OSError)):

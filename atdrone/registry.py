@@ -17,18 +17,14 @@ objects (or processes) on one file serialise their writes instead of losing them
 read-modify-write such as merging metrics is atomic. JSON columns (parents, tags,
 metrics, team, seeds, info) are stored as text and decoded in the views.
 
-On Ray. :func:`registry_actor` gets or creates the named actor ``RegistryActor`` (this
-class as a Ray actor, ``num_cpus=0``) in the namespace :data:`REGISTRY_NAMESPACE`;
-another driver on the same cluster finds it with :func:`find_registry_actor` (or
-``ray.get_actor(name, namespace="atdrone")``). The actor holds no state beyond the
-sqlite file, so when it dies Ray restarts it (``max_restarts=-1``) and it reopens the
-file: nothing committed is lost. Ray is imported only when the actor is used.
+On Ray: :mod:`atdrone.registry_ray` (``registry_actor``, ``find_registry_actor``,
+``RegistryActor``). The file itself (header checks, the read-only connection, the WAL):
+:mod:`atdrone.registry_file`.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-import functools
 import json
 import operator
 import os
@@ -43,13 +39,18 @@ from typing import Any
 
 import pandas as pd
 
-from atdrone.errors import UserError
 from atdrone.fileio import atomic_write, atomic_write_bytes
+from atdrone.registry_file import (
+    RegistryError,
+    check_header,
+    connect_read_only,
+    journal_mode,
+)
 
 SCHEMA_VERSION = 1
 STATUSES = ("active", "retired", "missing")
 METRICS = ("SUC", "COL", "AST", "REW")  # the evaluation protocol's metrics, one column each in matches
-TABLES = ("members", "matches", "generations")
+TABLES = ("members", "matches", "generations")  # every registry has them (``runs`` came later: optional)
 EXPORT_FORMATS = ("csv", "parquet")
 REGISTRY_NAMESPACE = "atdrone"
 DEFAULT_ACTOR_NAME = "registry"
@@ -96,6 +97,8 @@ _SCHEMA = (
         info TEXT NOT NULL DEFAULT '{}',
         PRIMARY KEY (run, idx)
     )""",
+    # the run (by its identifier) a service registry belongs to: one row, written by the run's first driver
+    "CREATE TABLE IF NOT EXISTS runs (run_id TEXT PRIMARY KEY, name TEXT NOT NULL, created TEXT NOT NULL)",
 )
 # what makes two registrations of one member id the same (add_member is idempotent on them)
 _MEMBER_KEY = ("run", "algorithm", "generation", "task", "parents", "checkpoint", "sha256")
@@ -106,10 +109,6 @@ _JSON_COLUMNS = {
     "matches": ("team", "seeds"),
     "generations": ("info",),
 }
-
-
-class RegistryError(UserError, ValueError):
-    """A request the registry refuses: a duplicate id, a bad field, a file that is not a registry."""
 
 
 RUN_RELATIVE = "./"  # a stored checkpoint path relative to the registry's folder
@@ -198,16 +197,16 @@ class Registry:
         self._lock = threading.RLock()
         if create:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            _check_header(self.path, empty_ok=True)
+            check_header(self.path, empty_ok=True)
             self._conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
         else:
-            self._conn = _connect_read_only(self.path)
+            self._conn = connect_read_only(self.path)
         try:
             if create:
                 self.journal_mode = str(self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]).lower()
                 self._init_schema()
             else:
-                self.journal_mode = _journal_mode(self._conn, self.path)
+                self.journal_mode = journal_mode(self._conn, self.path)
                 self._check_schema()
         except BaseException:
             self._conn.close()
@@ -302,6 +301,37 @@ class Registry:
     def db_path(self) -> str:
         """The absolute path of the sqlite file (a method, so a Ray actor handle can answer it)."""
         return str(self.path.resolve())
+
+    def owners(self) -> dict[str, str]:
+        """The runs this registry belongs to, ``{run_id: name}`` (empty for a registry no run has claimed)."""
+        with self._lock:
+            try:
+                rows = self._conn.execute("SELECT run_id, name FROM runs ORDER BY created").fetchall()
+            except sqlite3.OperationalError:  # a registry from before the table existed
+                return {}
+        return {str(run_id): str(name) for run_id, name in rows}
+
+    def claim(self, run_id: str, name: str) -> None:
+        """Make this the registry of run ``run_id`` (named ``name``); RegistryError when another run has it."""
+        _check_text("run_id", run_id)
+        with self._write() as conn:
+            rows = conn.execute("SELECT run_id, name FROM runs").fetchall()
+            others = [f"{n} (run id {r})" for r, n in rows if r != run_id]
+            if others:
+                raise RegistryError(
+                    f"{self.path} is the registry of {', '.join(others)}, not of {name} (run id {run_id})"
+                )
+            if not rows:
+                conn.execute("INSERT INTO runs (run_id, name, created) VALUES (?, ?, ?)", (run_id, name, _now()))
+
+    def checkpoint(self) -> bool:
+        """Fold the write-ahead log back into the file (``wal_checkpoint(TRUNCATE)``), so the file alone holds
+        every commit; False when a reader kept part of it (the rest is folded back by the next checkpoint)."""
+        if self.read_only:
+            return False
+        with self._lock:
+            busy = self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0]
+        return not busy
 
     def close(self) -> None:
         """Close the connection; the object is unusable afterwards."""
@@ -662,7 +692,6 @@ class Registry:
         return out
 
 
-SQLITE_MAGIC = b"SQLite format 3\x00"
 _JSON_TYPES: dict[str, tuple[type, str]] = {
     "parents": (list, "list of member ids"),
     "team": (list, "list of member ids"),
@@ -671,71 +700,6 @@ _JSON_TYPES: dict[str, tuple[type, str]] = {
     "metrics": (dict, "object"),
     "info": (dict, "object"),
 }
-
-
-def _check_header(path: Path, *, empty_ok: bool) -> None:
-    """Refuse a file that is not a sqlite database (and, unless ``empty_ok``, an empty file)."""
-    if not path.is_file():
-        return
-    with path.open("rb") as f:
-        head = f.read(len(SQLITE_MAGIC))
-    if not head and not empty_ok:
-        raise RegistryError(f"{path} is an empty file, not an atdrone registry")
-    if head and head != SQLITE_MAGIC:
-        raise RegistryError(f"{path} is not a sqlite database, so not an atdrone registry")
-
-
-def _connect_read_only(path: Path) -> sqlite3.Connection:
-    """A read-only connection (``mode=ro``) to an existing sqlite file; it never writes the file.
-
-    A WAL-mode file in a folder the reader may not write (so no ``-shm`` can be made) is
-    opened ``immutable`` instead, provided no ``-wal`` file holds commits not yet merged
-    (none can: nobody could write one there).
-    """
-    if not path.is_file():
-        raise FileNotFoundError(f"no registry at {path}")
-    _check_header(path, empty_ok=False)
-    uri = path.resolve().as_uri() + "?mode=ro"
-    try:
-        return _probe(uri)
-    except sqlite3.OperationalError as exc:
-        if not _is_wal(path) or _wal_has_data(path):
-            raise RegistryError(f"cannot read the registry at {path}: {exc}") from exc
-        first = exc
-    except sqlite3.DatabaseError as exc:
-        raise RegistryError(f"{path} cannot be read as an atdrone registry: {exc}") from exc
-    try:
-        return _probe(uri + "&immutable=1")
-    except sqlite3.DatabaseError as exc:
-        raise RegistryError(f"cannot read the registry at {path}: {first}") from exc
-
-
-def _probe(uri: str) -> sqlite3.Connection:
-    """Connect to ``uri`` and read the schema once (sqlite opens lazily), closing it on failure."""
-    conn = sqlite3.connect(uri, uri=True, timeout=30.0, isolation_level=None, check_same_thread=False)
-    try:
-        conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()
-    except BaseException:
-        conn.close()
-        raise
-    return conn
-
-
-def _is_wal(path: Path) -> bool:
-    """Whether the file's header says WAL mode (bytes 18 and 19 are 2)."""
-    with path.open("rb") as f:
-        header = f.read(20)
-    return len(header) == 20 and header[18] == 2
-
-
-def _wal_has_data(path: Path) -> bool:
-    wal = path.with_name(path.name + "-wal")
-    return wal.is_file() and wal.stat().st_size > 0
-
-
-def _journal_mode(conn: sqlite3.Connection, path: Path) -> str:
-    """The journal mode as stored, read without changing it (an immutable connection reports none)."""
-    return "wal" if _is_wal(path) else str(conn.execute("PRAGMA journal_mode").fetchone()[0]).lower()
 
 
 def _row_keys(frame: pd.DataFrame, table: str) -> list[str]:
@@ -769,62 +733,3 @@ def _same_value(stored: Any, value: float) -> bool:
 
 def _isnull(value: Any) -> bool:
     return value is None or (isinstance(value, float) and value != value)
-
-
-# ------------------------------------------------------------------- Ray
-@functools.cache
-def _actor_class() -> Any:
-    import ray
-
-    return ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(Registry)
-
-
-def __getattr__(name: str) -> Any:
-    """``RegistryActor`` is built on first use, so importing this module does not import Ray."""
-    if name == "RegistryActor":
-        return _actor_class()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def registry_actor(
-    path: str | os.PathLike[str] | None = None,
-    name: str = DEFAULT_ACTOR_NAME,
-    *,
-    detached: bool = False,
-    node: str | None = None,
-) -> Any:
-    """Get or create the registry actor ``name`` in namespace ``atdrone``, serving the file ``path``.
-
-    Lifetime: by default the actor belongs to the driver that creates it (the service
-    run): it lives as long as that job, other drivers on the cluster can use it by name
-    meanwhile, and the next run starts a fresh actor on the same file. ``detached=True``
-    makes it outlive the driver (a standing registry service; end it with ``ray.kill``).
-    An existing actor that serves a different file is refused with RegistryError.
-    ``node``: a Ray node id to run the actor on (the node whose local disk holds ``path``;
-    sqlite's WAL mode does not work on network file systems).
-
-    Retries: a call in flight when the actor dies is retried after the restart, and may
-    have committed before the death. Every write is therefore idempotent on a natural
-    key: ``add_member`` with a ``member_id`` (callers that need exactly-once pass one, e.g.
-    from :func:`new_member_id`; without one a retry registers a second id), ``add_match``
-    on (run, generation, team, task, seeds), and the upserts and merges of generations and
-    member updates.
-    """
-    import ray
-    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
-    file = str(Path(path if path is not None else default_path()).resolve())
-    place = {} if node is None else {"scheduling_strategy": NodeAffinitySchedulingStrategy(node, soft=False)}
-    options = {"lifetime": "detached" if detached else None, **place}
-    handle = _actor_class().options(name=name, namespace=REGISTRY_NAMESPACE, get_if_exists=True, **options).remote(file)
-    served = ray.get(handle.db_path.remote())
-    if served != file:
-        raise RegistryError(f"registry actor {name!r} already serves {served}, not {file}")
-    return handle
-
-
-def find_registry_actor(name: str = DEFAULT_ACTOR_NAME) -> Any:
-    """The running registry actor ``name`` in namespace ``atdrone`` (ValueError when there is none)."""
-    import ray
-
-    return ray.get_actor(name, namespace=REGISTRY_NAMESPACE)

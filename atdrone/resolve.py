@@ -28,6 +28,7 @@ so can the deploy job (:func:`resolve_checkpoint`).
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,7 @@ __all__ = ["PolicyNotFound", "Resolved", "resolve", "resolve_checkpoint", "resol
 
 MODEL_PREFIX = "models:/"
 WEIGHTS_PREFIX = "weights:"
+_WEIGHTS_PART = re.compile(r"[A-Za-z0-9_.-]+")  # a benchmark, method or task name: never a path
 WEIGHTS_ENV = "ATDRONE_WEIGHTS"
 REGISTRY_GLOB = "*/registry.db"
 
@@ -216,6 +218,8 @@ def _model(text: str, db: Path | None, runs_dir: Path, tracking: str | None, tri
         path = Path(model_checkpoint(text, tracking))
     except KeyError as exc:  # the model, its alias or its file is missing: nothing else can match a models:/ URI
         raise PolicyNotFound(f"no policy {text!r}: {exc.args[0] if exc.args else exc}") from None
+    if ".." in path.parts or not path.resolve().is_relative_to(user_cache("models").resolve()):
+        raise PolicyError(f"{text}: its version's tags name a file outside the model cache ({path}); refused")
     header = _header(path)
     member, registry = _member_by_sha256(header.get("sha256"), db, runs_dir)
     label = member["id"] if member else text
@@ -252,8 +256,11 @@ def _weights(text: str, db: Path | None, runs_dir: Path, tracking: str | None, t
     import json
 
     parts = text[len(WEIGHTS_PREFIX) :].split("/")
-    if len(parts) not in (2, 3) or not all(parts):
-        raise PolicyNotFound(f"{text!r}: name weights as weights:METHOD/TASK or weights:BENCHMARK/METHOD/TASK")
+    if len(parts) not in (2, 3) or not all(_WEIGHTS_PART.fullmatch(p) and p not in (".", "..") for p in parts):
+        raise PolicyNotFound(
+            f"{text!r}: name weights as weights:METHOD/TASK or weights:BENCHMARK/METHOD/TASK (letters, digits, "
+            "'_', '-' and '.'; no '..')"
+        )
     *bench, method, task = parts
     roots = [r for r in weights_roots() if not bench or r.name == bench[0]]
     found = [r for r in roots if weights_manifest(r, method, task).is_file()]

@@ -66,7 +66,7 @@ def main() -> None:
     from atdrone.learn.learner import Learner, LearnerSpec
     from atdrone.learn.ppo import ppo_config
     from atdrone.learn.trainer import Trainer, load_train_config
-    from atdrone.registry import registry_actor
+    from atdrone.registry_ray import registry_actor
     from atdrone.service.actors import RolloutJob, RolloutWorkerActor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.driver import init_ray

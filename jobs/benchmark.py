@@ -8,7 +8,9 @@ Inside a Ray job RAY_ADDRESS is set, so the cells run on the cluster's nodes; ou
 job it starts a local Ray (or joins --address). The cells' runs and records live in
 ``<out_dir>/<name>/``: on a cluster that must be storage every node sees (--out-dir or
 ATDRONE_OUT_DIR). Submitting the same config again after an interruption continues it:
-finished cells are skipped. Bad input exits with status 2 and a one-line error.
+finished cells are skipped. Bad input exits with status 2 and a one-line error; SIGTERM
+(``ray job stop``) and SIGINT stop it cleanly, saying what was kept and how to resume, with
+status 143 and 130.
 """
 
 from __future__ import annotations
@@ -40,16 +42,34 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.benchmark.cells import load_benchmark
     from atdrone.benchmark.job import run_benchmark
-    from atdrone.errors import UserError
+    from atdrone.errors import UserError, interrupt_exit_code, interrupt_on_signals, interrupted
 
     try:
         cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)
-        where = os.environ.get("RAY_ADDRESS") or args.address or "a local Ray"
-        print(f"{PROG}: benchmark {cfg.name} on {where}", flush=True)
+    except UserError as exc:
+        print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
+        return EXIT_USAGE
+    where = os.environ.get("RAY_ADDRESS") or args.address or "a local Ray"
+    print(f"{PROG}: benchmark {cfg.name} on {where}", flush=True)
+    interrupt_on_signals()  # SIGTERM as Ctrl-C (installed again once Ray has started)
+    try:
         summary = run_benchmark(cfg, address=args.address, tracking_uri=args.tracking_uri)
     except UserError as exc:
         print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
         return EXIT_USAGE
+    except BaseException as exc:
+        if not interrupted(exc):
+            raise
+        from atdrone.benchmark.cells import cells
+        from atdrone.benchmark.job import finished
+
+        again = " ".join([PROG, *(argv if argv is not None else sys.argv[1:])])
+        print(
+            f"{PROG}: interrupted; kept {len(finished(cfg))} finished cell(s) of {len(cells(cfg))} in {cfg.folder}; "
+            f"resume with: {again}",
+            file=sys.stderr,
+        )
+        return interrupt_exit_code(exc)
     print(f"{PROG}: done: {len(summary['records'])} cells, report {cfg.results / 'report.md'}")
     return 0
 

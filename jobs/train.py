@@ -14,7 +14,10 @@ ATDRONE_REGISTRY_DIR), a folder on the local disk of the node the driver runs on
 registry actor runs there too). MLflow goes to --tracking-uri, else
 MLFLOW_TRACKING_URI, else ./mlflow.db (on a cluster: a tracking server). The overrides are named
 like the config keys (--updates-per-generation and --updates_per_generation alike).
-Bad input exits with status 2 and a one-line error.
+Bad input exits with status 2 and a one-line error; a fault the run cannot survive (the disk
+full, a store that cannot be written) with status 1 and a line saying what was kept and
+how to resume; SIGTERM (``ray job stop``) and SIGINT end the run cleanly (its MLflow runs
+KILLED, what was kept and the resume command in one line) with status 143 and 130.
 """
 
 from __future__ import annotations
@@ -79,9 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.config import ConfigError, read_document
-    from atdrone.errors import UserError
+    from atdrone.errors import interrupt_exit_code, interrupt_on_signals, interrupted
     from atdrone.service.driver import format_summary, run_experiment
     from atdrone.service.experiment import load_experiment
+    from atdrone.service.faults import EXIT_FAULT, explain
+    from atdrone.service.runstate import kept
 
     overrides = {key: getattr(args, key) for key in INT_OVERRIDES}
     overrides.update(name=args.name, out_dir=args.out_dir, final_zoo=args.final_zoo, learner_gpus=args.learner_gpus)
@@ -106,11 +111,26 @@ def main(argv: list[str] | None = None) -> int:
         os.environ[REGISTRY_DIR_ENV] = args.registry_dir
     where = os.environ.get("RAY_ADDRESS") or args.address or "a local Ray"
     print(f"{PROG}: {cfg.name} ({cfg.algorithm} on {cfg.task}, {cfg.generations} generations) on {where}", flush=True)
+    interrupt_on_signals()  # SIGTERM as Ctrl-C (installed again once Ray has started)
     try:
         summary = run_experiment(cfg, address=args.address, resume=args.resume, tracking_uri=args.tracking_uri)
-    except UserError as exc:  # a run that exists, a damaged state file, a cluster that cannot place it, ...
-        print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
-        return EXIT_USAGE
+    except BaseException as exc:  # one line by kind, never a Ray traceback
+        run_dir = Path(cfg.out_dir) / cfg.name
+        again = " ".join([PROG, *(argv if argv is not None else sys.argv[1:])])
+        again += "" if args.resume else " --resume"
+        if interrupted(exc):
+            print(f"{PROG}: interrupted; kept {kept(run_dir)} in {run_dir}; resume with: {again}", file=sys.stderr)
+            return interrupt_exit_code(exc)
+        fault = explain(exc) if isinstance(exc, Exception) else None
+        if fault is None:
+            raise
+        if fault.code == EXIT_FAULT:
+            print(
+                f"{PROG}: error: {fault.line}; kept {kept(run_dir)} in {run_dir}; resume with: {again}", file=sys.stderr
+            )
+        else:  # a run that exists, a damaged state file, a cluster that cannot place it, ...
+            print(f"{PROG}: error: {fault.line}", file=sys.stderr)
+        return fault.code
     from atdrone.tracking import tracking_uri, ui_hint
 
     print(format_summary(cfg, summary, tracking_uri(args.tracking_uri)))

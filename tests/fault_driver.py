@@ -94,21 +94,25 @@ def _wrap(owner: Any, name: str, spec: dict[str, Any], matches: Any = lambda *a,
 
 def attempt(spec: dict[str, Any]) -> None:
     """One driver: the kill point of ``spec`` wrapped, then the run resumed (or started)."""
-    import atdrone.registry
+    import atdrone.registry_ray
     import atdrone.service.driver as driver
     from atdrone.service.experiment import load_experiment
     from atdrone.tracking import Tracker
 
     target = spec["target"]
     if spec["side"] == "coordinator" or target in WRITES:
-        make, release = atdrone.registry.registry_actor, driver._release
-        atdrone.registry.registry_actor = lambda *a, **k: KillingRegistry(make(*a, **k), spec)  # type: ignore[assignment]
+        make, release = atdrone.registry_ray.registry_actor, driver._release
+        atdrone.registry_ray.registry_actor = lambda *a, **k: KillingRegistry(make(*a, **k), spec)  # type: ignore[assignment]
         driver._release = lambda c, r, n, *a: release(c, getattr(r, "handle", r), n, *a)  # type: ignore[assignment]
     elif target.startswith("tracker."):
         _wrap(Tracker, target.removeprefix("tracker."), spec)
     elif target.startswith("file:"):
+        import atdrone.service.results as results
+        import atdrone.service.runstate as runstate
+
         name = target.removeprefix("file:")
-        _wrap(driver, "_write_json", spec, lambda path, data: Path(path).name == name)
+        for module in (runstate, results):
+            _wrap(module, "write_json", spec, lambda path, data: Path(path).name == name)
     else:
         raise SystemExit(f"unknown target {target!r}")
     cfg = load_experiment(spec["doc"])

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,6 +16,7 @@ from typing import Any
 
 import mlflow
 import numpy as np
+import pandas as pd
 import pytest
 import ray
 
@@ -164,7 +167,7 @@ KILLS = [
     ("driver", "file:service_state.json", "before", 1, 0),  # generation 0 fully logged, not saved
     ("coordinator", "add_match", "after", 1, 1),  # generation 1: its first match recorded
     ("driver", "tracker.log_metrics", "after", 1, 1),  # generation 1's point on the parent's curves logged
-    ("driver", "tracker.log_dict", "after", 1, 1),  # generation 1's learner run begun
+    ("driver", "tracker.log_dict", "after", 1, 1),  # generation 1's learner run begun; then the run is moved
     ("driver", "file:service_state.json", "after", 1, 2),  # generation 1 saved and logged
     ("driver", "tracker.register_checkpoint", "after", 1, 2),  # the best member registered, no summary yet
     ("driver", "file:summary.json", "after", 1, 2),  # the summary written, the parent run still RUNNING
@@ -219,7 +222,7 @@ def _run_state(run_dir: Path) -> dict[str, Any]:
     state["files"] = {p.name: read_header(p)["sha256"] for p in sorted((run_dir / "members").glob("*.pt"))}
     saved = json.loads((run_dir / "service_state.json").read_text())
     assert saved["registry"] == "./registry.db"  # relative: a moved run directory keeps its own
-    state["state"] = {k: v for k, v in saved.items() if k not in ("mlflow_run_id", "registry")}
+    state["state"] = {k: v for k, v in saved.items() if k not in ("mlflow_run_id", "registry", "run_id")}
     state["summary"] = json.loads((run_dir / "summary.json").read_text())
     state["population"] = (run_dir / "population.csv").read_text()
     reg.close()
@@ -240,24 +243,44 @@ def _wait_for_the_dead_drivers_actors(name: str) -> None:
     pytest.fail(f"the killed driver's registry actor registry-{name} is still alive")
 
 
+@pytest.fixture(scope="module")
+def reference(_ray_session: str, _mlflow_template: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The uninterrupted run of FAULTY (named faults_t), made once for the module's faults to be compared with:
+    its registry, files and state (``state``) and its MLflow record (``mlflow``)."""
+    folder = tmp_path_factory.mktemp("reference")
+    shutil.copyfile(_mlflow_template, folder / "ref.db")
+    uri = f"sqlite:///{folder / 'ref.db'}"
+    cfg = load_experiment({**FAULTY, "name": "faults_t", "out_dir": str(folder / "ref")})
+    run_experiment(cfg, tracking_uri=uri, progress=False)
+    return {"state": _run_state(folder / "ref" / "faults_t"), "mlflow": _mlflow_record(uri, "faults_t")}
+
+
+def _same_as(reference: dict[str, Any], run_dir: Path, uri: str) -> None:
+    got = _run_state(run_dir)
+    for part, want in reference["state"].items():
+        assert got[part] == want, part
+    got_mlflow = _mlflow_record(uri, "faults_t")
+    assert sorted(got_mlflow) == sorted(reference["mlflow"])
+    for name, want in reference["mlflow"].items():
+        assert got_mlflow[name] == want, name
+
+
 def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uninterrupted_run(
-    local_ray, tmp_path, mlflow_store
+    local_ray, tmp_path, mlflow_store, reference
 ):
     """One run is SIGKILLed at ten points of its life, each resumed by the next driver (joined to the same
     Ray): before and after registry writes of the coordinator and the driver, inside the MLflow logging of
-    a generation, around the state file, after the model registration and after the summary. The last
+    a generation, around the state file, after the model registration and after the summary. Killed with a
+    learner's MLflow run RUNNING, the run directory is moved and resumed from its new place. The last
     resume completes it. Registry, checkpoints, state, MLflow runs (names, statuses, parents, metric
-    points, artifacts) and model versions equal those of an uninterrupted run of the same config."""
-    reference_uri, faulty_uri = mlflow_store(tmp_path / "ref.db"), mlflow_store(tmp_path / "faulty.db")
+    points, artifacts; no run left RUNNING or twice) and model versions equal those of an uninterrupted run
+    of the same config, and the registry's .db file copied alone holds every row."""
+    faulty_uri = mlflow_store(tmp_path / "faulty.db")
     doc = {**FAULTY, "name": "faults_t"}
-    run_experiment(
-        load_experiment({**doc, "out_dir": str(tmp_path / "ref")}), tracking_uri=reference_uri, progress=False
-    )
-    want = _run_state(tmp_path / "ref" / "faults_t")
-    want_mlflow = _mlflow_record(reference_uri, "faults_t")
 
     run_dir = tmp_path / "faulty" / "faults_t"
     faulty = {**doc, "out_dir": str(tmp_path / "faulty")}
+    moved = tmp_path / "moved"
     server = subprocess.Popen(
         [sys.executable, str(REPO / "tests" / "fault_driver.py"), "--serve"],
         cwd=REPO,
@@ -279,6 +302,10 @@ def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uni
             if target == "add_member":  # a killed run is continued only when asked to
                 with pytest.raises(FileExistsError, match="--resume"):
                     run_experiment(load_experiment(faulty), tracking_uri=faulty_uri, progress=False)
+            if target == "tracker.log_dict":  # killed with a learner's MLflow run RUNNING: resumed elsewhere
+                moved.mkdir()
+                run_dir = Path(shutil.move(run_dir, moved / "faults_t"))
+                faulty["out_dir"] = str(moved)
     finally:
         server.stdin.close()
         server.wait(timeout=60)
@@ -287,13 +314,7 @@ def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uni
 
     summary = run_experiment(load_experiment(faulty), tracking_uri=faulty_uri, resume=True, progress=False)
     assert summary["complete"]
-    got = _run_state(run_dir)
-    for part in want:
-        assert got[part] == want[part], part
-    got_mlflow = _mlflow_record(faulty_uri, "faults_t")
-    assert sorted(got_mlflow) == sorted(want_mlflow)
-    for name in want_mlflow:
-        assert got_mlflow[name] == want_mlflow[name], name
+    _same_as(reference, run_dir, faulty_uri)
     # the registry names each learner's live MLflow run
     runs = {
         r.info.run_id: r.info.run_name
@@ -301,6 +322,17 @@ def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uni
     }
     for _, m in Registry(run_dir / "registry.db", create=False).members().iterrows():
         assert runs[m["mlflow_run_id"]] == f"learner-{m['id']}"
+    # the registry's file alone (no -wal beside it) holds the whole registry
+    alone = tmp_path / "alone" / "registry.db"
+    alone.parent.mkdir()
+    shutil.copyfile(run_dir / "registry.db", alone)
+    with Registry(alone, create=False) as copy, Registry(run_dir / "registry.db", create=False) as reg:
+        for table in ("members", "matches", "generations"):
+            pd.testing.assert_frame_equal(
+                getattr(copy, table)().drop(columns="checkpoint", errors="ignore"),
+                getattr(reg, table)().drop(columns="checkpoint", errors="ignore"),
+            )
+        assert len(copy.members()) == len(reference["state"]["members"])
 
 
 # ------------------------------------------------------------------ a rollout worker that keeps dying
@@ -352,3 +384,139 @@ def test_a_worker_that_keeps_dying_fails_the_training_naming_it_and_the_cap_inst
     assert error is not None
     message = str(error)
     assert "rollout worker 1" in message and f"restarted {cap} times" in message, message
+
+
+# ------------------------------------------------------------------ a stop signal to each entry point
+def _state(run_dir: Path) -> dict[str, Any]:
+    try:
+        return json.loads((run_dir / "service_state.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _stop_when(proc: subprocess.Popen[str], ready: Any, timeout_s: float = 240.0) -> tuple[str, str]:
+    """SIGTERM to ``proc`` once ``ready()``; its stdout and stderr."""
+    deadline = time.monotonic() + timeout_s
+    while not ready():
+        assert proc.poll() is None, f"ended before the signal: {proc.communicate()}"
+        assert time.monotonic() < deadline, "never got there"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    return proc.communicate(timeout=180)
+
+
+@pytest.mark.parametrize("entry", ["atdrone train", "jobs/train.py"])
+def test_sigterm_to_a_training_driver_ends_in_one_line_with_143_and_its_resume_equals_an_uninterrupted_run(
+    local_ray, tmp_path, mlflow_store, reference, entry
+):
+    """SIGTERM (`ray job stop`) once generation 0 is saved: the driver (joined to the session's Ray, whose
+    handlers ray.init replaced) ends its MLflow runs, says in its last line what it kept and how to resume, and
+    exits 143 with no traceback. The resume then ends as an uninterrupted run."""
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    doc = {**FAULTY, "name": "faults_t", "out_dir": str(tmp_path / "out")}
+    config = tmp_path / "faults_t.json"
+    config.write_text(json.dumps(doc))
+    if entry == "atdrone train":
+        command = [sys.executable, "-m", "atdrone.cli", "train", str(config), "--address", local_ray, "--no-progress"]
+    else:
+        command = [sys.executable, "jobs/train.py", str(config), "--address", local_ray, "--tracking-uri", uri]
+    env = {**os.environ, "MLFLOW_TRACKING_URI": uri}
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run_dir = tmp_path / "out" / "faults_t"
+    _, err = _stop_when(proc, lambda: _state(run_dir).get("logged", 0) >= 1)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "SIGTERM received" not in err, err
+    last = err.strip().splitlines()[-1]
+    prog = entry.split()[-1] if entry.startswith("jobs") else "atdrone train"
+    kept = (
+        r"kept [12] completed generation\(s\) \(the registry, member checkpoints; the unfinished one is played again\)"
+    )
+    assert re.fullmatch(rf"{re.escape(prog)}: interrupted; {kept} in \S+; resume with: .*--resume", last), last
+    _wait_for_the_dead_drivers_actors("faults_t")
+    run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)
+    _same_as(reference, run_dir, uri)
+
+
+def test_sigterm_to_a_benchmark_ends_in_one_line_with_143(local_ray, tmp_path, mlflow_store):
+    """`atdrone benchmark` stopped by SIGTERM while its first cell trains: one last line (cells kept, the resume
+    command), exit 143, no traceback."""
+    from conftest import tiny_benchmark
+
+    config = tmp_path / "bench.json"
+    config.write_text(json.dumps(tiny_benchmark(tmp_path, "term_b")))
+    env = {**os.environ, "MLFLOW_TRACKING_URI": mlflow_store(tmp_path / "mlflow.db")}
+    command = [sys.executable, "-m", "atdrone.cli", "benchmark", str(config), "--address", local_ray, "--no-progress"]
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _, err = _stop_when(proc, lambda: any((tmp_path / "bench").rglob("service_state.json")))
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "SIGTERM received" not in err, err
+    last = err.strip().splitlines()[-1]
+    assert re.fullmatch(
+        r"atdrone benchmark: interrupted; kept 0 finished cell\(s\) of \d+ .* resume with: atdrone benchmark \S+ .*",
+        last,
+    ), last
+
+
+# ------------------------------------------------------------------ a learner and the coordinator killed
+def test_a_learner_killed_mid_update_and_the_coordinator_killed_mid_generation_end_as_an_uninterrupted_run(
+    local_ray, tmp_path, mlflow_store, reference, monkeypatch
+):
+    """In generation 0 the learner's process is SIGKILLed while it trains (after its first update); in
+    generation 1 the coordinator's (the one that replaced the first). The driver replaces the dead actors each
+    time and plays the generation again from the last saved one: the run ends as an uninterrupted one
+    (registry, checkpoints, state, MLflow), with three coordinators used."""
+    import threading
+
+    from atdrone.service import pool
+
+    class Recording(pool.CoordinatorPool):
+        def __init__(self) -> None:
+            super().__init__()
+            self.taken: list[Any] = []
+
+        def take(self) -> Any:
+            self.taken.append(super().take())
+            return self.taken[-1]
+
+    coordinators = Recording()
+    monkeypatch.setattr(pool, "COORDINATORS", coordinators)
+    killed: list[str] = []
+    done = threading.Event()
+
+    def progress(c: Any) -> tuple[int, str]:
+        return ray.get(c.state.remote())["generation"], ray.get(c.progress.remote())
+
+    def kill() -> None:
+        try:
+            while not done.is_set() and len(killed) < 2:
+                time.sleep(0.02)
+                if not coordinators.taken:
+                    continue
+                current = coordinators.taken[-1]
+                try:
+                    generation, line = progress(current)
+                except ray.exceptions.RayError:
+                    continue
+                if not killed and "update 1/" in line:
+                    for pid in ray.get(current.learner_pids.remote()):
+                        os.kill(pid, signal.SIGKILL)
+                    killed.append(f"learners in generation {generation}: {line}")
+                elif len(killed) == 1 and len(coordinators.taken) == 2 and (generation, line[:6]) == (1, "train:"):
+                    os.kill(ray.get(current.pid.remote()), signal.SIGKILL)
+                    killed.append(f"coordinator in generation {generation}: {line}")
+        except BaseException as exc:  # reported by the test
+            killed.append(f"killer failed: {exc!r}")
+
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    doc = {**FAULTY, "name": "faults_t", "out_dir": str(tmp_path / "out")}
+    killer = threading.Thread(target=kill, daemon=True)
+    killer.start()
+    try:
+        run_experiment(load_experiment(doc), tracking_uri=uri, progress=False)
+    finally:
+        done.set()
+        killer.join(timeout=30)
+    assert [k.split(" in ")[0] for k in killed] == ["learners", "coordinator"], killed
+    assert killed[0].startswith("learners in generation 0"), killed
+    assert len(coordinators.taken) == 3
+    _same_as(reference, tmp_path / "out" / "faults_t", uri)

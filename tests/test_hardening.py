@@ -271,7 +271,7 @@ def test_a_run_the_cluster_cannot_place_is_refused_at_once(local_ray, tmp_path):
 def test_the_coordinator_reports_what_a_generation_is_doing(local_ray, tmp_path):
     """One PBT generation trains two learners, plays their fitness matches and evaluates them on the zoo."""
     from atdrone.population import ALGORITHMS
-    from atdrone.registry import registry_actor
+    from atdrone.registry_ray import registry_actor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.experiment import registry_name
 
@@ -399,13 +399,13 @@ def test_metrics_logged_once_per_step_add_no_second_point(tmp_path, mlflow_store
 
 
 def test_two_runs_of_one_name_in_two_out_dirs_keep_their_own_mlflow_runs(tmp_path, mlflow_store):
-    """The records of a run are found by its run directory's key, not its name: resuming b/exp ends and
-    removes b's dead nested runs only, never the live ones of a/exp (same name, same store)."""
+    """The records of a run are found by its identifier, not its name: resuming b/exp ends and removes b's dead
+    nested runs only, never the live ones of a/exp (same name, same store)."""
+    from atdrone.rundir import new_run_id
     from atdrone.service.driver import run_tags
 
-    cfg = load_experiment(_service(tmp_path, "exp"))
-    a, b = run_tags(cfg, tmp_path / "a" / "exp"), run_tags(cfg, tmp_path / "b" / "exp")
-    assert a["atdrone.run"] == b["atdrone.run"] == "exp" and a["atdrone.run_dir"] != b["atdrone.run_dir"]
+    a, b = run_tags("exp", new_run_id()), run_tags("exp", new_run_id())
+    assert a["atdrone.run"] == b["atdrone.run"] == "exp" and a["atdrone.run_id"] != b["atdrone.run_id"]
     tracker = Tracker(mlflow_store(tmp_path / "mlflow.db"))
     client = tracker.mlflow.MlflowClient()
     ident = tracker.experiment("exp")

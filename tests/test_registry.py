@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -314,6 +315,36 @@ def test_a_file_from_a_newer_schema_or_not_a_registry_is_refused(tmp_path: Path)
         Registry(other, create=False)
     with pytest.raises(FileNotFoundError, match="no registry at"):
         Registry(tmp_path / "missing.db", create=False)
+
+
+def test_a_registry_belongs_to_the_run_that_claimed_it(registry: Registry) -> None:
+    assert registry.owners() == {}
+    registry.claim("a1b2", "hola-quick")
+    registry.claim("a1b2", "hola-quick")  # the run's own resume: nothing changes
+    with pytest.raises(
+        RegistryError, match=r"is the registry of hola-quick \(run id a1b2\), not of other \(run id c3\)"
+    ):
+        registry.claim("c3", "other")
+    assert registry.owners() == {"a1b2": "hola-quick"}
+
+
+def test_after_a_checkpoint_the_file_alone_holds_every_commit(registry: Registry, tmp_path: Path) -> None:
+    """The writer is never closed (a Ray actor is killed): after :meth:`Registry.checkpoint` the .db file copied
+    without its -wal holds every member and match; copied before, it is not even a registry."""
+    ids = [_add(registry, generation=g) for g in range(3)]
+    registry.add_match([ids[0]], TASK, "hola-quick", 0, [1], 4, RESULT)
+    before = tmp_path / "before" / "registry.db"
+    before.parent.mkdir()
+    shutil.copyfile(registry.path, before)
+    assert registry.checkpoint()
+    assert registry.path.with_name("registry.db-wal").stat().st_size == 0
+    after = tmp_path / "after" / "registry.db"
+    after.parent.mkdir()
+    shutil.copyfile(registry.path, after)
+    with Registry(after, create=False) as copy:
+        assert list(copy.members()["id"]) == ids and len(copy.matches()) == 1
+    with pytest.raises(RegistryError, match="not an atdrone registry"):
+        Registry(before, create=False)
 
 
 def test_concurrent_writers_on_one_file_lose_nothing(tmp_path: Path) -> None:
@@ -841,7 +872,8 @@ def ray_cluster(local_ray):
 
 
 def test_actor_serves_the_registry_and_a_second_driver_finds_it_by_name(ray_cluster, tmp_path: Path) -> None:
-    from atdrone.registry import REGISTRY_NAMESPACE, RegistryActor, registry_actor
+    from atdrone.registry import REGISTRY_NAMESPACE
+    from atdrone.registry_ray import RegistryActor, registry_actor
 
     ray = ray_cluster
     path = tmp_path / "served.db"
@@ -875,7 +907,7 @@ def test_actor_serves_the_registry_and_a_second_driver_finds_it_by_name(ray_clus
 
 
 def test_killed_actor_restarts_and_reloads_the_members_from_sqlite(ray_cluster, tmp_path: Path) -> None:
-    from atdrone.registry import registry_actor
+    from atdrone.registry_ray import registry_actor
 
     ray = ray_cluster
     actor = registry_actor(tmp_path / "restart.db", name="registry-restart")
@@ -909,7 +941,7 @@ def _die_after_the_next_commit(registry: Registry) -> None:
 def test_a_write_replayed_by_ray_after_the_actor_died_is_recorded_once(ray_cluster, tmp_path: Path) -> None:
     """The actor dies after committing and before replying; Ray restarts it and retries the call (as it does
     for every call in flight): add_member returns its id, add_match the first match's id, nothing doubles."""
-    from atdrone.registry import registry_actor
+    from atdrone.registry_ray import registry_actor
 
     ray = ray_cluster
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the patch travels by value

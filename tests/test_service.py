@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 import shutil
 import sys
 import time
@@ -27,7 +28,7 @@ from atdrone.population.base import Algorithm, GenerationReport, record
 from atdrone.registry import Registry
 from atdrone.resolve import resolve
 from atdrone.rundir import RunError
-from atdrone.service import driver
+from atdrone.service import results
 from atdrone.service.driver import STATE_FILE, run_experiment, select_best
 from atdrone.service.experiment import load_experiment
 from atdrone.teams.evaluation import metrics, run_episodes
@@ -181,7 +182,7 @@ def test_hola_trains_on_partner_profiles_drawn_from_rho(local_ray, tmp_path):
     """The profiles the rollout drew for the learner's episodes follow hypergraph.json's profile distribution."""
     from scipy.stats import chisquare
 
-    from atdrone.registry import registry_actor
+    from atdrone.registry_ray import registry_actor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.experiment import registry_name
 
@@ -225,7 +226,7 @@ def test_killed_rollout_worker_is_restarted_and_the_run_completes(local_ray, tmp
     whose fragments the worker was collecting (its progress still names the one before), so that call was
     a collect."""
     from atdrone.population import ALGORITHMS
-    from atdrone.registry import registry_actor
+    from atdrone.registry_ray import registry_actor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.experiment import registry_name
 
@@ -273,7 +274,7 @@ def test_the_coordinator_skips_a_zoo_evaluation_whose_checkpoint_is_missing(loca
     """A zoo whose checkpoint file is absent (a zoo document in tmp_path): evaluate_population returns no
     results and sends nothing to the workers, where the same call with a complete zoo plays (and here,
     with a member that has no checkpoint, fails on the worker)."""
-    from atdrone.registry import registry_actor
+    from atdrone.registry_ray import registry_actor
     from atdrone.service.coordinator import Coordinator
     from atdrone.service.experiment import registry_name
 
@@ -506,7 +507,7 @@ def test_a_selection_zoo_sharing_drones_with_a_test_zoo_is_refused(tmp_path, zoo
 def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path, monkeypatch, mlflow_store):
     """A run whose test-zoo results are replaced by planted ones that rank every member above the one the
     (real) validation results choose: the best member and the MLflow champion are still the validation's."""
-    real = driver._evaluate_population
+    real = results._evaluate_population
     seen: dict[str, dict[str, dict[str, float]]] = {}
     planted: dict[str, float] = {}
 
@@ -526,7 +527,7 @@ def test_the_champion_never_depends_on_a_test_zoo_evaluation(local_ray, tmp_path
                 row["SUC"], row["REW"] = planted[member], planted[member]
         return results
 
-    monkeypatch.setattr(driver, "_evaluate_population", evaluate)
+    monkeypatch.setattr(results, "_evaluate_population", evaluate)
     uri = mlflow_store(tmp_path / "mlflow.db")
     cfg = _cfg(tmp_path, "sel", algorithm="sp", generations=3, final_zoo="zoo3", final_episodes=16)
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
@@ -594,3 +595,95 @@ def test_a_drivers_runs_share_one_coordinator_and_learner_that_run_as_new_ones_w
     coordinators.give_back([coordinator])
     (worker,) = ray.get(coordinator.kept.remote())["workers"]
     assert worker not in kept[0]["workers"]
+
+
+def test_runs_of_one_name_never_mix_one_driver_holds_a_run_and_a_resume_checks_what_it_trusts(
+    local_ray, tmp_path, monkeypatch, capsys
+):
+    """With one registry folder for every run (the cluster's recipe): while run A's driver runs, a second driver
+    on A is refused in one line naming the holder; a new run of the same name in another out dir gets a registry
+    of its own and leaves A's byte-identical. Then, before Ray starts and in one line (exit 2), leaving A as it
+    was: a member checkpoint swapped for another valid one, a registry file of the other run and a state file
+    whose generation count is -3 are refused."""
+    import os
+    import signal
+    import threading
+
+    from atdrone.cli import main
+    from atdrone.service import driver
+    from atdrone.service.runstate import REGISTRY_DIR_ENV
+
+    monkeypatch.setenv(REGISTRY_DIR_ENV, str(tmp_path / "registries"))
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}  # main() installs its own
+    doc = {**TINY, "algorithm": "sp", "generations": 2, "num_workers": 1, "sp": {}, "name": "same"}
+    a_doc, b_doc = {**doc, "out_dir": str(tmp_path / "a")}, {**doc, "out_dir": str(tmp_path / "b")}
+    config = tmp_path / "same.json"
+    config.write_text(json.dumps(a_doc))
+    run_dir = tmp_path / "a" / "same"
+
+    def train(*extra: str) -> tuple[int, str]:
+        try:
+            code = main(["train", str(config), "--no-progress", *extra])
+        finally:
+            for s, h in handlers.items():
+                signal.signal(s, h)
+        return code, capsys.readouterr().err.strip().splitlines()[-1]
+
+    first = threading.Thread(target=run_experiment, args=(load_experiment(a_doc),), kwargs={"progress": False})
+    first.start()
+    try:
+        while not (run_dir / STATE_FILE).exists():  # born: its driver holds it from here on
+            time.sleep(0.02)
+        code, line = train("--resume")
+    finally:
+        first.join()
+    assert code == 2
+    assert re.fullmatch(
+        rf"atdrone train: error: run {re.escape(str(run_dir))} is in use by driver pid {os.getpid()} on \S+ since "
+        r"\S+: one driver per run; wait for it to end \(or stop it\) before resuming",
+        line,
+    ), line
+    a_registry = Path(json.loads((run_dir / STATE_FILE).read_text())["registry"])
+    assert a_registry.parent.parent == tmp_path / "registries" / "same"  # keyed by the run's identifier
+    a_files = {p: p.read_bytes() for p in a_registry.parent.iterdir()}
+    with Registry(a_registry, create=False) as reg:
+        assert len(reg.members()) == 2
+
+    b = run_experiment(load_experiment(b_doc), progress=False, stop_after=1)  # same name, same registry folder
+    b_registry = Path(json.loads((Path(b["run_dir"]) / STATE_FILE).read_text())["registry"])
+    assert b_registry != a_registry
+    assert {p: p.read_bytes() for p in a_registry.parent.iterdir()} == a_files
+
+    def ray_started(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("Ray was started before the run was checked")
+
+    monkeypatch.setattr(driver, "init_ray", ray_started)
+    state = (run_dir / STATE_FILE).read_bytes()
+    first_member, second_member = sorted((run_dir / "members").glob("*.pt"))
+    kept = first_member.read_bytes()
+    shutil.copyfile(second_member, first_member)  # a valid checkpoint, of another member
+    code, line = train("--resume", "--generations", "3")
+    assert code == 2 and re.fullmatch(
+        rf"atdrone train: error: member {first_member.stem}: \S+ has sha256 \w+\.\.\., its registry row \w+\.\.\.: "
+        "the checkpoint was replaced, so the run cannot be resumed",
+        line,
+    ), line
+    first_member.write_bytes(kept)
+    shutil.copyfile(a_registry, tmp_path / "a.db")
+    shutil.copyfile(b_registry, a_registry)  # the other run's registry in A's place
+    code, line = train("--resume", "--generations", "3")
+    assert code == 2 and re.fullmatch(
+        rf"atdrone train: error: {re.escape(str(a_registry))} is the registry of same \(run id \w+\), not of this "
+        r"run \(run id \w+\)",
+        line,
+    ), line
+    shutil.copyfile(tmp_path / "a.db", a_registry)
+    edited = json.loads(state)
+    edited["coordinator"]["generation"] = -3
+    (run_dir / STATE_FILE).write_text(json.dumps(edited))
+    code, line = train("--resume", "--generations", "3")
+    assert code == 2 and "-3 completed and" in line and "the run cannot be resumed" in line, line
+    (run_dir / STATE_FILE).write_bytes(state)
+    assert {p: p.read_bytes() for p in a_registry.parent.iterdir() if p.suffix == ".db"} == {
+        p: b for p, b in a_files.items() if p.suffix == ".db"
+    }

@@ -11,8 +11,8 @@ File layout (one file, ``*.pt``):
             (:mod:`atdrone.models.tensorfile`, safetensors with its own digest);
             format 1 (legacy, older runs), ``torch.save`` of the state_dict.
 ``head -2 file.pt`` shows the provenance. Files are written to a temp name and
-renamed. Loading checks the magic line, the header and its digest, the sha256 and the
-observation layout, and refuses a mismatched, edited or corrupted file with a
+renamed. Loading checks the magic line, the header and its digest, the sha256, the
+observation layout and that every weight is finite, and refuses a mismatched, edited or corrupted file with a
 :class:`CheckpointError`: a header line that is not one JSON object with distinct keys
 (at most ``MAX_HEADER_BYTES``), header fields of the wrong type or beyond their bounds
 (num_p, num_e <= ``MAX_DRONES``), a file over ``MAX_FILE_BYTES``, and an architecture
@@ -261,6 +261,15 @@ def _check_shapes(path: Path, model: PolicyModel, tensors: dict[str, torch.Tenso
     raise CheckpointError(f"{path}: weights do not match the architecture in the header: {detail}")
 
 
+def _check_finite(path: Path, tensors: dict[str, torch.Tensor]) -> None:
+    """CheckpointError when a weight is NaN or infinite (a diverged update saved): the policy would act on NaN."""
+    bad = [name for name, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    if bad:
+        raise CheckpointError(
+            f"{path}: non-finite weights (NaN or inf) in {', '.join(bad[:3])}: the policy is unusable"
+        )
+
+
 def load_checkpoint(path: str | Path, expect_task: str | None = None) -> tuple[PolicyModel, dict[str, Any]]:
     """Model (in eval mode) and header of a checkpoint; CheckpointError when it does not fit.
 
@@ -282,6 +291,7 @@ def load_checkpoint(path: str | Path, expect_task: str | None = None) -> tuple[P
         raise CheckpointError(f"{path}: {exc}") from None
     tensors = _tensors(path, header, payload)
     _check_shapes(path, shape, tensors)
+    _check_finite(path, tensors)
     model = build_model(header["architecture"])
     module = _module(model)
     try:

@@ -229,6 +229,9 @@ class LearnerActor:
         """True: the actor answers."""
         return True
 
+    def pid(self) -> int:
+        return os.getpid()
+
     def get_weights(self) -> dict[str, torch.Tensor]:
         return self.learner.get_weights()
 

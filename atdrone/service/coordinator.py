@@ -22,6 +22,7 @@ run killed mid-generation and resumed ends exactly as an uninterrupted one.
 
 from __future__ import annotations
 
+import os
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
@@ -41,7 +42,8 @@ from atdrone.models.checkpoint import load_checkpoint
 from atdrone.policies.manifest import task_version
 from atdrone.policies.zoo import MemberSpec, load_zoo
 from atdrone.population.base import Algorithm, GenerationReport, MatchResult, Team, Trained
-from atdrone.registry import find_registry_actor, member_id
+from atdrone.registry import member_id
+from atdrone.registry_ray import find_registry_actor
 from atdrone.service.actors import (
     ANSWER_TIMEOUT_S,
     LearnerActor,
@@ -231,6 +233,13 @@ class Coordinator:
 
     def worker_pids(self) -> list[int]:
         return ray.get([w.pid.remote() for w in self.workers])
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def learner_pids(self) -> list[int]:
+        """The process ids of this coordinator's learner actors (for tests that kill them)."""
+        return ray.get([learner.pid.remote() for learner in self._own_learners])
 
     def workers_handles(self) -> list[Any]:
         return list(self.workers)

@@ -18,7 +18,7 @@ became ``ppo.num_envs`` and ``rollout_steps`` became ``ppo.rollout_steps``.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +54,9 @@ LIMITS = {
     "final_episodes": 1_000_000,
     "learner_threads": 256,
 }
+MAX_LR = 1.0  # a learning rate beyond it only makes NaN weights
+MAX_EPISODES = 1_000_000  # any episode count of an algorithm's section
+
 # keys of earlier, flat documents -> where they live now
 MOVED = {
     "population_size": 'the algorithm\'s section, e.g. "hola": {"population_size": 4}',
