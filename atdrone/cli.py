@@ -29,6 +29,7 @@ from atdrone.cli_registry import add_member_location, add_registry, run_registry
 from atdrone.cli_zoos import add_zoos, run_zoos
 from atdrone.config import TASK_NAMES, ConfigError, read_json
 from atdrone.errors import UserError, interrupt_exit_code, interrupt_on_signals
+from atdrone.fileio import output_file
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
 POLICY_HELP = (
@@ -86,20 +87,7 @@ def _fps(text: str) -> float:
     return value
 
 
-def _output_file(path: Path, suffixes: tuple[str, ...], flag: str = "--out") -> Path:
-    """``path`` if it names a file of one of ``suffixes`` in a folder that exists; UserError otherwise.
-
-    An output file is never written under another format's name, and a mistyped folder
-    is not created silently.
-    """
-    if path.suffix.lower() not in suffixes:
-        raise UserError(f"{flag} {path}: the file name must end in {' or '.join(suffixes)}")
-    if path.is_dir():
-        raise UserError(f"{flag} {path}: is a folder; give a file name")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UserError(f"{flag} {path}: no folder {str(parent)!r} (create it first)")
-    return path
+_output_file = output_file  # the one check of an output file name (atdrone.fileio)
 
 
 def _add_episode_args(p: argparse.ArgumentParser) -> None:

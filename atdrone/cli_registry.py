@@ -82,10 +82,10 @@ def add_registry(subparsers: Any) -> argparse.ArgumentParser:
 
 def run_registry(args: argparse.Namespace) -> int:
     """Answer one registry query; a refused one (RegistryError, a missing file) reaches the CLI's main as one line."""
-    from atdrone.cli import _output_file
+    from atdrone.fileio import output_file
     from atdrone.registry_view import answer
 
     if args.registry_command == "export":
-        _output_file(args.out, (f".{args.format}",))
+        output_file(args.out, (f".{args.format}",))
     print(answer(args, warn=lambda message: print(f"atdrone registry: warning: {message}", file=sys.stderr)))
     return 0

@@ -68,3 +68,21 @@ def user_cache(*parts: str) -> Path:
     if os.environ.get("ATDRONE_CACHE"):
         return Path(os.environ["ATDRONE_CACHE"]).joinpath(*parts)
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache", "atdrone", *parts)
+
+
+def output_file(path: Path, suffixes: tuple[str, ...], flag: str = "--out") -> Path:
+    """``path`` if it names a file of one of ``suffixes`` in a folder that exists; UserError otherwise.
+
+    An output file is never written under another format's name, and a mistyped folder
+    is not created silently.
+    """
+    from atdrone.errors import UserError
+
+    if path.suffix.lower() not in suffixes:
+        raise UserError(f"{flag} {path}: the file name must end in {' or '.join(suffixes)}")
+    if path.is_dir():
+        raise UserError(f"{flag} {path}: is a folder; give a file name")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise UserError(f"{flag} {path}: no folder {str(parent)!r} (create it first)")
+    return path

@@ -65,9 +65,9 @@ def test_every_kind_of_name_resolves_to_its_policy(tmp_path: Path, monkeypatch: 
     # a member's checkpoint file leads back to the member (the digest matches)
     by_file = resolve("runs/hola_quick/members/hola-g3-0.pt")
     assert (by_file.kind, by_file.label) == ("checkpoint", "hola-g3-0")
-    zoo = resolve("zoo2:sp_low")
-    assert (zoo.kind, zoo.label, zoo.checkpoint) == ("zoo", "sp_low", SP_LOW)
-    assert resolve("sp_high").checkpoint == SP_HIGH  # a shipped zoo's member by its bare name
+    zoo = resolve("zoo2:sp_low@4p2e1o")  # a drone trained per task names its task
+    assert (zoo.kind, zoo.label, zoo.checkpoint.resolve()) == ("zoo", "sp_low", SP_LOW.resolve())
+    assert resolve("sp_high@4p2e1o").checkpoint.resolve() == SP_HIGH.resolve()  # a shipped zoo's member, bare
     assert resolve_checkpoint("hola-g3-0") == (tmp_path / "runs/hola_quick/members/hola-g3-0.pt").resolve()
     with pytest.raises(PolicyError, match="'vicsek' is a rule drone, not a trained policy"):
         resolve_checkpoint("vicsek")
@@ -86,8 +86,10 @@ def test_a_name_that_matches_nothing_lists_what_was_tried(tmp_path: Path, monkey
     with pytest.raises(PolicyNotFound, match=rf"a member id \(not in the registry at {run_dir / 'registry.db'}\)"):
         resolve("hola-g9-9", db=run_dir / "registry.db")
     _run(tmp_path, "b", {"x-g0-0": SP_LOW})
-    with pytest.raises(PolicyNotFound, match=r"member 'x-g0-0' is in several registries .*: pass --db"):
+    with pytest.raises(PolicyNotFound, match=r"member 'x-g0-0' is in several runs: name one as a/x-g0-0, b/x-g0-0"):
         resolve("x-g0-0")
+    assert resolve("b/x-g0-0").registry == Path("runs/b/registry.db")  # the run-qualified id
+    assert resolve("x-g0-0", run="a").registry == Path("runs/a/registry.db")
     with pytest.raises(PolicyNotFound, match="is a directory, not a checkpoint file"):
         resolve(str(tmp_path))
 
