@@ -113,7 +113,11 @@ def run_benchmark(
         from atdrone.benchmark.report import table2, write_report
         from atdrone.benchmark.weights import keep_weights
 
+        from atdrone.benchmark.bounds import bounds_from_records, write_bounds
+
         files = write_report(cfg, records)
+        # the bounds of the normalised scores, with the zoo version they were measured with
+        files["bounds"] = write_bounds(bounds_from_records(records, cfg.eval_episodes), cfg.results / "bounds.json")
         manifests = keep_weights(cfg, records)
         _log_results(tracker, cfg, records, table2)
         for path in files.values():
