@@ -79,6 +79,8 @@ def fly(
     cfg = load_deploy(sim_doc(tmp_path, registry_member, **changes))
     result = run_deploy(cfg, arm=arm, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}", say=print, stop=stop)
     print(f"ended early: {result.ended_early!r}")  # shown with a failure
+    for n, v in (result.fleet or {}).items():
+        print(n, "true", np.round(v["pos"], 3), "stopped by", v["history"], "impacts", v["impacts"][-2:])
     return result
 
 
@@ -562,14 +564,27 @@ def test_a_hung_loop_is_stopped_by_the_firmware_watchdog_within_1_5_s(
     assert set(end_states(frame).values()) == {"stopped"}
 
 
-def test_a_drifting_drone_is_held_on_its_reference(tmp_path: Path, registry_member: tuple[str, str]) -> None:
+def test_a_drifting_drone_is_held_on_its_reference(
+    tmp_path: Path, registry_member: tuple[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A steady 1 m/s^2 push (wind): Mellinger's kp 0.4 / mass 0.029 leaves 0.029 / 0.4 = 7 cm of offset."""
-    result = fly(
-        tmp_path,
-        registry_member,
-        horizon=60,
-        faults=[{"kind": "drift", "at": 4.0, "drone": "cf1", "accel": [1.0, 0.0, 0.0]}],
-    )
+    from atdrone.deploy import job
+    from atdrone.deploy.team import Team
+
+    fleets: list[Any] = []
+    schedule, new_episode = job._schedule, Team.new_episode
+
+    def keep_fleet(cfg: Any, faults: Any, fleet: Any, *args: Any) -> None:
+        fleets.append(fleet)
+        schedule(cfg, faults, fleet, *args)
+
+    def push_at_start(self: Team, rng: np.random.Generator) -> None:  # the wind rises as the episode begins
+        fleets[0].push("cf1", np.array([1.0, 0.0, 0.0]))
+        new_episode(self, rng)
+
+    monkeypatch.setattr(job, "_schedule", keep_fleet)
+    monkeypatch.setattr(Team, "new_episode", push_at_start)
+    result = fly(tmp_path, registry_member, horizon=60)
     assert not result.ended_early
     frame = ticks(result)
     rows = frame[(frame.drone == "cf1") & (frame.step >= 20)]

@@ -287,3 +287,24 @@ def test_scaled_clock_runs_the_frame_rate_in_clock_time() -> None:
     # Frames are stamped in clock time: the last one is near the clock's time at stop (a loaded host may start
     # the thread late, so not at 3.0 exactly); stamped in wall seconds it would read about 0.3.
     assert stopped - 0.5 < mocap.latest()["a"].t <= stopped, (mocap.latest()["a"].t, stopped)
+
+
+def test_a_frozen_system_keeps_sending_the_old_pose_and_the_poses_say_so() -> None:
+    """Frames keep arriving while "a" is frozen: each repeats its position exactly, ``still`` counts them and
+    ``moved_t`` stays at the last frame that moved; a noisy standing body never looks frozen."""
+    clock = ScaledClock(5.0)
+    mocap = SimMocap(Walker(clock), FrameTransform(), clock, rate=50.0, noise=0.002, latency=0.0)
+    frames = collect(mocap)
+    try:
+        t0 = started(mocap, clock)
+        mocap.freeze("a", t0 + 0.5, t0 + 1.5)
+        clock.sleep_until(t0 + 1.2)
+        during = mocap.latest()["a"]
+        clock.sleep_until(t0 + 2.0)
+        after = mocap.latest()["a"]
+    finally:
+        mocap.stop()
+    assert during.still >= 20 and during.t - during.moved_t > 0.5  # 50 Hz for 0.7 s: ~35 frames repeated
+    assert np.allclose(during.pos[0], t0 + 0.5, atol=0.05)  # where it was when the freeze began
+    assert after.still == 0 and after.moved_t == after.t
+    assert max(f["b"].still for f in frames if "b" in f) == 0  # noise moves a standing body every frame

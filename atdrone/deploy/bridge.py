@@ -215,6 +215,12 @@ class CflibBridge:
     def _setup(self, name: str, cf: Any) -> None:
         from cflib.crazyflie.log import LogConfig
 
+        # cflib's link statistics ping every link from a thread of its own and take percentiles of the latencies
+        # on every answer: work in the ground station's interpreter that the flight does not use (link health
+        # comes from the packets received, below)
+        with contextlib.suppress(Exception):
+            cf.link_statistics.stop()
+
         cf.packet_received.add_callback(lambda _pk, n=name: self._heard.__setitem__(n, time.monotonic()))
         self._heard[name] = time.monotonic()
         settings = (

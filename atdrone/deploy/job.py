@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import signal
@@ -465,6 +466,10 @@ def _deploy(
             log.write(log_dir)
         sent = dict(backend.bridge.sent())
         fleet = backend.fleet.report() if backend.fleet is not None else None
+        if fleet is not None:  # what the simulated firmware saw, beside the log: true heights, impacts, cuts
+            from atdrone.fileio import atomic_write_text
+
+            atomic_write_text(log_dir / "fleet.json", json.dumps(fleet, indent=1))
         t0 = flight.t0
     summary = summarize(log_dir)
     run_id = log_to_mlflow(log_dir, tracking_uri, cfg.name)

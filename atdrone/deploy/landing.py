@@ -23,6 +23,7 @@ down and says how they came down:
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 
@@ -34,13 +35,15 @@ from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.crtp import BIT_CRASHED, BIT_HL_DISABLED, BIT_HL_FINISHED, BIT_IS_FLYING, BIT_LOCKED, BIT_TUMBLED
 from atdrone.deploy.links import LinkView
 from atdrone.deploy.reactions import Reaction, Verdict, spare_landing, verdict
-from atdrone.deploy.shield import Action, ShieldConfig, ShieldDecision
+from atdrone.deploy.shield import Action, ShieldConfig, ShieldDecision, ellipsoid_distance
 
 AIRBORNE = ("taking_off", "flying", "landing")
 CLAMPS = ("speed", "step", "altitude", "geofence", "obstacle", "nan_setpoint")  # rules on our own setpoints
 STILL = 0.1  # m/s: a landed drone measured slower than this
 LANDED_CONFIRM = 2.5  # s: the supervisor reports a drone flying until its motors idled for 2 s
 SETTLE_EXTRA = 3.0  # s past a landing and its confirmation before the flight gives up waiting (the hard limit)
+TOUCH = 1.0  # scaled distance: two ellipsoids touching
+RECENT = 10  # ticks of heights kept: a cut is reported at the highest of them (a paused host sees it late)
 CUT_BITS = (1 << BIT_LOCKED) | (1 << BIT_TUMBLED) | (1 << BIT_CRASHED)
 
 
@@ -73,6 +76,7 @@ class Landing:
     landing_from: dict[str, np.ndarray]
     cut: dict[str, tuple[float, str]]
     last_seen: dict[str, float]
+    recent: dict[str, deque[tuple[float, str]]]
     grow: np.ndarray
     hold_at: np.ndarray
     prev_setpoint: np.ndarray
@@ -147,13 +151,12 @@ class Landing:
         printed when it is the worst so far."""
         bits = self.bridge.supervisor()
         for i, n in enumerate(self.names):
-            # the height before this tick: a drone cut while the host was paused has fallen by the time it is seen
-            z = self.last_seen.get(n, float(pos[i, 2]))
             if np.isfinite(pos[i, 2]):
                 self.last_seen[n] = float(pos[i, 2])
+                self.recent.setdefault(n, deque(maxlen=RECENT)).append((float(pos[i, 2]), self.state[n]))
             fresh = self.links.silence[i] <= self.shield_cfg.link_timeout
             if fresh and cut_by_firmware(bits.get(n, 0)) and n not in self.cut and self.state[n] != "idle":
-                self.cut[n] = (z, self.state[n])
+                self.cut[n] = self._cut_at(n)
                 self.state[n] = "stopped"
             if decision.action[i] == Action.LOST and self.state[n] in (*AIRBORNE, "landed"):
                 if self.state[n] != "landed" or not confirmed_down(bits.get(n, 0), float(self.speed[i])):
@@ -187,13 +190,23 @@ class Landing:
         return now
 
     # ------------------------------------------------------------ separation under the planner
-    def _separate_planned(self, decision: ShieldDecision) -> list[str]:
-        """Drones under the onboard planner (taking off, landing) that the separation rule holds against a drone
-        with a valid pose are taken over: a hold setpoint (pushed apart) stops their planner; they land again once
-        clear. A grown obstacle (a drone without a valid pose) never stops a landing. The drones taken over."""
+    def _touching(self, decision: ShieldDecision, pos: np.ndarray) -> set[int]:
+        """Drones of the pairs the separation rule held whose ellipsoids touch now (both with valid poses): under
+        the planner, only that is acted on (the planner flies straight up and down: nearer pairs stay as near)."""
         pairs = decision.pairs if decision.pairs is not None else np.zeros((0, 2), dtype=int)
-        real = [(a, b) for a, b in pairs if self.grow[a] == 0 and self.grow[b] == 0]
-        held = {k for pair in real for k in pair}
+        r, h = self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height
+        return {
+            int(k)
+            for a, b in pairs
+            if self.grow[a] == 0 and self.grow[b] == 0 and ellipsoid_distance(pos[b] - pos[a], r, h) < TOUCH
+            for k in (a, b)
+        }
+
+    def _separate_planned(self, decision: ShieldDecision, pos: np.ndarray) -> list[str]:
+        """Drones under the onboard planner (taking off, landing) whose ellipsoids touch another's (both with
+        valid poses) are taken over: a hold setpoint (pushed apart) stops their planner; they land again once
+        clear. A grown obstacle (a drone without a valid pose) never stops a landing. The drones taken over."""
+        held = self._touching(decision, pos)
         take = [
             self.names[k]
             for k in sorted(held)
@@ -210,11 +223,10 @@ class Landing:
             self._set_state(take, "flying")
         return take
 
-    def _reland(self, decision: ShieldDecision, land: bool = True) -> None:
-        """Drones taken over for separation (streaming, state ``flying``): those still in a conflict hold, those
+    def _reland(self, decision: ShieldDecision, pos: np.ndarray, land: bool = True) -> None:
+        """Drones taken over for separation (streaming, state ``flying``): those still touching hold, those
         clear again land (``land``) or hold where they are (a takeoff: the flight takes them over after it)."""
-        pairs = decision.pairs if decision.pairs is not None else np.zeros((0, 2), dtype=int)
-        busy = {self.names[k] for pair in pairs for k in pair}
+        busy = {self.names[k] for k in self._touching(decision, pos)}
         flying = [n for n in self.names if self.state[n] == "flying"]
         if not flying:
             return
@@ -223,6 +235,15 @@ class Landing:
         held = {n: v for n, v in held.items() if np.isfinite(v[0]).all()}
         self.bridge.post_setpoints(held)
         self._land(clear)
+
+    def _cut_at(self, n: str) -> tuple[float, str]:
+        """Where a drone the firmware cut was: the highest of its last :data:`RECENT` ticks and its state then
+        (the supervisor's report arrives up to a tick late, later still after a pause of the host, by when the
+        drone has fallen)."""
+        seen = list(self.recent.get(n, ()))
+        if not seen:
+            return self.last_seen.get(n, float("nan")), self.state[n]
+        return max(seen, key=lambda zs: zs[0])
 
     # ------------------------------------------------------------ landing
     def _poses_fresh(self) -> bool:
@@ -263,8 +284,8 @@ class Landing:
             decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
             self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             reaction = self._react(decision, pos)
-            self._separate_planned(decision)
-            self._reland(decision, land=landing)
+            self._separate_planned(decision, pos)
+            self._reland(decision, pos, land=landing)
             self._call_lost()
             self._touchdown(pos)
             if not landing and reaction.reaction >= Reaction.LAND_ONE:
@@ -296,8 +317,8 @@ class Landing:
             decision = self._shield(pos, age, pos)
             decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
             self._react(decision, pos)
-            self._separate_planned(decision)
-            self._reland(decision)
+            self._separate_planned(decision, pos)
+            self._reland(decision, pos)
             self._land([n for n in self.names if self.state[n] == "taking_off"])
             self._call_lost()
             self._touchdown(pos)

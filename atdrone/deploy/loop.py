@@ -30,7 +30,9 @@ from __future__ import annotations
 import concurrent.futures
 import gc
 import math
+import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 from dataclasses import replace as dc_replace
@@ -71,6 +73,9 @@ OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
 LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
 CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
 GROW_CAP = 1.0  # m: the most a drone without a valid pose is grown by (it lands or is stopped long before)
+# s a thread holds the interpreter before another gets it: 1 ms (Python's 5 ms) in flight, so that the heartbeat
+# and the loop wait less behind cflib's, the motion capture's and the sender's threads on a busy host
+SWITCH = 0.001
 MOVING = 0.05  # m/s: a drone commanded faster than this should show it (a pose that does not is frozen)
 
 
@@ -174,6 +179,7 @@ class Flight(Landing, Sequencing):
         self.landing_from: dict[str, np.ndarray] = {}  # where each landing began (its landing column)
         self.cut: dict[str, tuple[float, str]] = {}  # drones whose motors were cut: height, state then
         self.last_seen: dict[str, float] = {}  # last measured height per drone
+        self.recent: dict[str, deque[tuple[float, str]]] = {}  # per drone its last ticks' heights and states
         self.ended: dict[str, str] = {}  # how each drone ended (after run)
         self.valid_pos = np.full((D, 3), np.nan)  # each drone's last valid (known, fresh) position
         self.valid_t = np.full(D, -np.inf)  # and when it was measured (clock)
@@ -225,6 +231,9 @@ class Flight(Landing, Sequencing):
         # limit of the tests' doubled clock; in flight only objects made since are scanned
         gc.collect()
         gc.freeze()
+        gc.disable()  # and no collection at all in flight: one stops every thread, the heartbeat's too
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH)
         # the pose stream's threads stood still through the collection: fresh poses before the first tick
         fresh_by = self.clock.now() + 2.0
         while self.clock.now() < fresh_by and not np.all(self.measured()[2] < self.shield_cfg.stale_pose / 2):
@@ -263,6 +272,8 @@ class Flight(Landing, Sequencing):
             self.policy.close()
             self._worker.shutdown(wait=False, cancel_futures=True)
             gc.unfreeze()
+            gc.enable()
+            sys.setswitchinterval(switch)
         if self.stop and not self.aborted:
             self.aborted = f"stop requested ({self.stop.signal})"
         down = {n: e for n, e in self.ended.items() if e != "landed"}

@@ -157,6 +157,8 @@ class Sequencing:
         lo_hi = self._fence()
         blocked: TransitBlocked | None = None
         for draw in range(SPAWN_DRAWS):
+            if not self._hold_tick():  # every try ticks: the heartbeat and the shield's watch go on
+                return None
             if draw:  # no transit to that draw: the task's spawn distribution, conditioned on a reachable one
                 spawn_p, spawn_e = self._spawn()
                 self.notes.setdefault("", []).append("spawn_redrawn")

@@ -8,8 +8,8 @@ ground station's process (it is the USB dongle). What a stalled, stopped or star
 ground station does to the drones then follows from the firmware's watchdogs alone,
 not from the simulation stalling with it.
 
-The parent reads the drones' true poses from shared memory (written after every
-physics step, for the simulated motion capture) and sends faults and the final report
+The parent reads the drones' true poses from shared memory (one copy after every
+physics step, without a lock, so that neither process ever waits on the other) and sends faults and the final report
 request down a pipe.
 """
 
@@ -61,13 +61,11 @@ def _child(
         radio_retries=radio_retries,
         lossy=True,
     )
-    view = np.frombuffer(truth.get_obj(), dtype=np.float64).reshape(len(names), 4)
+    view = np.frombuffer(truth, dtype=np.float64).reshape(len(names), 4)
 
-    def publish() -> None:
+    def publish() -> None:  # one copy into the shared block, no lock: a reader never waits on this process
         poses = fleet.truth()
-        with truth.get_lock():
-            for i, n in enumerate(names):
-                view[i, :3], view[i, 3] = poses[n]
+        view[:] = np.array([[*poses[n][0], poses[n][1]] for n in names])
 
     fleet.on_step = publish
     publish()
@@ -108,7 +106,7 @@ class FleetProcess:
         # fork: the child starts at once and never imports the caller's main module again (spawn would); it is
         # made before cflib, the motion capture or the policies start their threads
         ctx = multiprocessing.get_context("fork")
-        self._truth = ctx.Array("d", len(self.names) * 4)
+        self._truth = ctx.RawArray("d", len(self.names) * 4)
         self._conn, child = ctx.Pipe()
         self._lock = threading.Lock()
         self._proc = ctx.Process(
@@ -176,8 +174,7 @@ class FleetProcess:
     # ------------------------------------------------------------ views and faults
     def truth(self) -> dict[str, tuple[np.ndarray, float]]:
         """True position and yaw of every drone, as of the child's last physics step."""
-        with self._truth.get_lock():
-            view = np.array(self._truth.get_obj(), dtype=np.float64).reshape(len(self.names), 4)
+        view = np.frombuffer(self._truth, dtype=np.float64).reshape(len(self.names), 4).copy()
         return {n: (view[i, :3].copy(), float(view[i, 3])) for i, n in enumerate(self.names)}
 
     def report(self) -> dict[str, dict[str, Any]]:

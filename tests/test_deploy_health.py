@@ -1,0 +1,142 @@
+"""Link health, fault reactions and landing confirmation: the pure pieces of a flight's end, by hand."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from atdrone.deploy import crtp
+from atdrone.deploy.landing import confirmed_down, cut_by_firmware
+from atdrone.deploy.links import LinkHealth
+from atdrone.deploy.reactions import LANDING_COLUMN, Reaction, spare_landing, verdict
+from atdrone.deploy.shield import Action, ShieldConfig, ShieldInput, shield
+
+CFG = ShieldConfig()
+NAMES = ("a", "b", "c")
+
+
+class Wall:
+    """A wall clock the test moves."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def tick(pos: Any, **changes: Any) -> ShieldInput:
+    pos = np.asarray(pos, dtype=float)
+    D = len(pos)
+    base = ShieldInput(
+        dt=0.1,
+        arena=(3.6, 5.0),
+        names=NAMES[:D],
+        physical=np.ones(D, dtype=bool),
+        pos=pos,
+        vel=np.zeros((D, 3)),
+        pose_age=np.full(D, 0.01),
+        setpoint=pos.copy(),
+        prev_setpoint=pos.copy(),
+        battery=np.full(D, 4.0),
+        link_age=np.full(D, 0.05),
+        policy_latency=0.0,
+        stop_requested=False,
+    )
+    return replace(base, **changes)
+
+
+APART = [[1.0, 1.0, 0.5], [2.5, 1.0, 0.5], [1.0, 4.0, 0.5]]
+
+
+# ---------------------------------------------------------------- link health
+def test_a_host_pause_is_not_silence_and_one_quiet_link_is_a_lost_drone() -> None:
+    wall = Wall()
+    links = LinkHealth(NAMES, rate=4.0, timeout=0.5, wall=wall)
+    # 0.3 wall s without a packet from anyone (1.2 clock s) because the process was paused: nobody is silent
+    assert links.host_paused(late_by=1.2, period=0.1)
+    wall.t += 0.01
+    view = links.update({"a": 0.3, "b": 0.3, "c": 0.3})
+    assert (view.silence < 0.5).all() and view.all_silent == 0
+    # later, one link alone stays quiet: that drone is silent, nobody else
+    wall.t += 1.0
+    view = links.update({"a": 0.02, "b": 0.5, "c": 0.02})
+    assert list(view.silence > 0.5) == [False, True, False] and view.all_silent == 0
+    # every link quiet together: one stall of the ground station (the shortest silence)
+    view = links.update({"a": 0.2, "b": 0.5, "c": 0.3})
+    assert (view.silence > 0.5).all() and view.all_silent == 0.8
+    # a blocked sender reaches nobody either
+    view = links.update({"a": 0.0, "b": 0.0, "c": 0.0}, sender_age=0.9)
+    assert view.all_silent == 0.9
+
+
+def test_every_link_silent_holds_then_lands_all_and_marks_nobody_lost() -> None:
+    silent = np.full(3, 0.7)
+    held = shield(tick(APART, link_age=silent, links_silent=0.7), CFG)
+    assert (held.action == Action.HOLD).all() and not held.lost()
+    assert {e.rule for e in held.events} == {"links_silent"}
+    landed = shield(tick(APART, link_age=np.full(3, 1.1), links_silent=1.1), CFG)  # timeout 0.5 + stall 0.5
+    assert (landed.action == Action.LAND).all() and not landed.lost()
+    one = shield(tick(APART, link_age=np.array([0.05, 0.7, 0.05])), CFG)
+    assert one.lost() == ["b"] and list(one.action) == [Action.LAND, Action.LOST, Action.LAND]
+
+
+# ---------------------------------------------------------------- grown obstacles
+def test_a_drone_without_a_valid_pose_is_an_obstacle_grown_by_its_possible_travel() -> None:
+    """b's pose is gone: 0.5 m from its last valid one a tracking drone holds once b may have flown 0.3 m
+    (grown ellipsoids touch), not while b may have flown only 0.1 m; before, a pose-less drone was skipped."""
+    pos = [[1.0, 1.0, 0.5], [np.nan, np.nan, np.nan], [1.0, 4.0, 0.5]]
+    last = np.array([[1.0, 1.0, 0.5], [1.5, 1.0, 0.5], [1.0, 4.0, 0.5]])
+    age = np.array([0.01, np.inf, 0.01])
+    near = shield(tick(pos, pose_age=age, last_pos=last, grow=np.array([0.0, 0.3, 0.0])), CFG)
+    assert near.action[0] == Action.HOLD and "separation" in {e.rule for e in near.events if e.drone == "a"}
+    far = shield(tick(pos, pose_age=age, last_pos=last, grow=np.array([0.0, 0.1, 0.0])), CFG)
+    assert "separation" not in {e.rule for e in far.events if e.drone == "a"}
+    blind = shield(tick(pos, pose_age=age), CFG)
+    assert "separation" not in {e.rule for e in blind.events}
+
+
+# ---------------------------------------------------------------- reactions
+def test_the_most_severe_reaction_is_taken_and_named() -> None:
+    """A low battery lands one drone while another's supervisor reports it locked: stop one, named locked."""
+    d = shield(
+        tick(APART, battery=np.array([3.0, 4.0, 4.0]), locked=np.array([False, False, True])),
+        CFG,
+    )
+    v = verdict(d, np.ones(3, dtype=bool))
+    assert v.reaction == Reaction.STOP_ONE and v.rules == ("locked",) and v.drones == ("c",)
+    assert v.line() == "stop one: locked (c)"
+    lands = verdict(shield(tick(APART, stop_requested=True), CFG), np.ones(3, dtype=bool))
+    assert lands.reaction == Reaction.LAND_ALL and lands.rules == ("signal",)
+    one = verdict(shield(tick(APART, battery=np.array([3.0, 4.0, 4.0])), CFG), np.ones(3, dtype=bool))
+    assert one.reaction == Reaction.LAND_ONE and one.drones == ("a",)
+    assert Reaction.HOLD < Reaction.LAND_ONE < Reaction.LAND_ALL < Reaction.STOP_ONE < Reaction.STOP_ALL
+
+
+def test_a_landing_drone_is_stopped_only_once_it_leaves_its_landing_column() -> None:
+    began = {"a": np.array([1.0, 1.0, 0.5]), "b": np.array([2.0, 2.0, 0.5])}
+    state = {"a": "landing", "b": "landing", "c": "flying"}
+    pos = {
+        "a": np.array([1.0 + LANDING_COLUMN / 2, 1.0, 0.3]),  # inside its column: spared
+        "b": np.array([2.0 + 2 * LANDING_COLUMN, 2.0, 0.3]),  # out of it: stopped
+        "c": np.array([3.0, 3.0, 0.5]),  # not landing: stopped
+    }
+    assert spare_landing(["a", "b", "c"], state, pos, began) == ["b", "c"]
+    unseen = {**pos, "a": np.full(3, np.nan)}  # no pose: its planner goes on
+    assert spare_landing(["a"], state, unseen, began) == []
+
+
+# ---------------------------------------------------------------- landing confirmed
+def test_landed_means_the_firmware_says_so_not_a_low_height() -> None:
+    flying = 1 << crtp.BIT_IS_FLYING
+    finished, idle = 1 << crtp.BIT_HL_FINISHED, 1 << crtp.BIT_HL_DISABLED
+    assert confirmed_down(idle, 0.0) and confirmed_down(finished, float("nan"))
+    assert not confirmed_down(flying | idle, 0.0)  # motors idled less than 2 s ago (or a takeoff begins)
+    assert not confirmed_down(0, 0.0)  # the planner still flies
+    assert not confirmed_down(idle, 0.3)  # measured moving
+    cut = idle | 1 << crtp.BIT_LOCKED
+    assert not confirmed_down(cut, 0.0) and cut_by_firmware(cut)
+    assert cut_by_firmware(1 << crtp.BIT_TUMBLED) and cut_by_firmware(1 << crtp.BIT_CRASHED)
+    assert not cut_by_firmware(flying | finished)
