@@ -125,3 +125,25 @@ def test_softmin_is_the_entropy_regularised_minimiser_of_the_learners_outcomes()
     assert draws == pytest.approx({("a", "b"): 1 / z, ("a", "c"): math.exp(-1) / z, ("b", "c"): math.exp(-5) / z})
     cold = hg.softmin_profiles(weights, ["L"], temperature=1e-3)
     assert cold[("a", "b")] == pytest.approx(1.0)  # the worst team, as temperature -> 0
+
+
+def test_softmin_replays_only_the_learners_hyperedges_that_may_hold_uncertain_mass():
+    stats = {
+        ("L", "a", "b"): (10.0, 3.0),  # the lowest, uncertain: replayed
+        ("L", "a", "c"): (14.0, 2.0),  # 14 - 2 * 2 = 10 <= 10 + 3 * 2: may hold mass, se 2 > 1: replayed
+        ("L", "b", "c"): (30.0, 5.0),  # 30 - 10 = 20 > 16: holds under exp(-3) of the top's mass
+        ("L", "c", "d"): (11.0, 0.5),  # near the top but measured to half a temperature already
+        ("a", "b", "c"): (0.0, 9.0),  # no learner in it: the softmin never reads it
+    }
+    assert hg.uncertain_softmin(stats, ["L"], temperature=2.0, z=2.0) == {("L", "a", "b"), ("L", "a", "c")}
+
+
+def test_softmin_replays_spend_fewer_episodes_for_the_same_signal():
+    effects = {"p0": 0.0, "p1": 0.0, "p2": 0.0, "p3": 0.0, "p4": -20.0}
+    spent = {}
+    for replay in ("partners", "softmin"):
+        runs = [_min_step(HolaConfig(replay=replay, null_trials=0), effects, seed) for seed in range(6)]
+        spent[replay] = sum(oracle.episodes for _, oracle in runs)
+        assert min(algo.rho["p4"] for algo, _ in runs) >= 0.49, replay
+    assert spent["softmin"] <= 0.6 * spent["partners"], spent
+    assert HolaConfig().replay == "auto"

@@ -383,6 +383,24 @@ def pooled(batches: Iterable[tuple[int, float, float]]) -> tuple[float, float, i
     return mean, math.sqrt(squares / (total - 1) / total), total
 
 
+def uncertain_softmin(
+    stats: dict[Team, tuple[float, float]], learners: Sequence[str], temperature: float, z: float, reach: float = 3.0
+) -> set[Team]:
+    """The learners' hyperedges whose softmin mass is not yet measured well enough: those that may hold mass
+    (their weight minus ``z`` standard errors is within ``reach`` temperatures of the lowest weight; a
+    hyperedge further up gets under exp(-reach) of the top's mass) and whose standard error is over half a
+    temperature (their mass is then uncertain by more than a factor exp(z / 2)). The matches worth more
+    episodes when rho is the softmin, which reads only the learners' own hyperedges.
+    """
+    check_finite({t: w for t, (w, _) in stats.items()})
+    check_finite({t: se for t, (_, se) in stats.items()}, "standard error")
+    own = {t: v for t, v in stats.items() if set(t) & set(learners)}
+    if not own:
+        return set()
+    lowest = min(w for w, _ in own.values())
+    return {t for t, (w, se) in own.items() if se > temperature / 2 and w - z * se <= lowest + reach * temperature}
+
+
 def contested_preferences(stats: dict[Team, tuple[float, float]], z: float) -> dict[str, set[Team]]:
     """The nodes whose preferred hyperedge is not resolved, with the hyperedges that contest it.
 
