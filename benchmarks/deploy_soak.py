@@ -54,7 +54,7 @@ def fly_once(config: Path, out: Path, episodes: int, timeout: float) -> dict[str
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     wall = time.perf_counter() - t0
-    logs = [p for p in set(out.iterdir()) - before if p.is_dir()]
+    logs = [p for p in set(out.iterdir()) - before if (p / "meta.json").is_file()]
     row: dict[str, Any] = {"exit": proc.returncode, "wall_s": round(wall, 1), "stderr_tail": proc.stderr[-400:]}
     if len(logs) != 1:
         row["error"] = f"expected one new log directory, found {len(logs)}"

@@ -117,6 +117,7 @@ def min_scaled_separation(frame: pd.DataFrame, radius: float = 0.125, half_heigh
     t = float(grid.index[k])
     pair = frame[frame.drone.isin([names[a], names[b]]) & frame.t.between(t - 1.0, t + 0.2)]
     cols = ["t", "step", "drone", "state", "x", "y", "z", "setpoint_x", "setpoint_y", "events", "latency_tick"]
+    cols = [c for c in cols if c in frame.columns]
     out = Closest(scaled[k, a, b])
     out.where = f"t={t:.2f}, {names[a]}-{names[b]}; the second before:\n{pair[cols].to_string()}"
     return out

@@ -33,7 +33,7 @@ from atdrone.deploy.bridge import Bridge
 from atdrone.deploy.clock import Clock
 from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.crtp import BIT_CRASHED, BIT_HL_DISABLED, BIT_HL_FINISHED, BIT_IS_FLYING, BIT_LOCKED, BIT_TUMBLED
-from atdrone.deploy.links import LinkView
+from atdrone.deploy.links import LinkHealth, LinkView
 from atdrone.deploy.reactions import Reaction, Verdict, spare_landing, verdict
 from atdrone.deploy.shield import Action, ShieldConfig, ShieldDecision, ellipsoid_distance
 
@@ -76,7 +76,8 @@ class Landing:
     landing_from: dict[str, np.ndarray]
     cut: dict[str, tuple[float, str]]
     last_seen: dict[str, float]
-    recent: dict[str, deque[tuple[float, str]]]
+    recent: dict[str, deque[tuple[float, str, int]]]
+    link_health: LinkHealth
     grow: np.ndarray
     hold_at: np.ndarray
     prev_setpoint: np.ndarray
@@ -153,7 +154,8 @@ class Landing:
         for i, n in enumerate(self.names):
             if np.isfinite(pos[i, 2]):
                 self.last_seen[n] = float(pos[i, 2])
-                self.recent.setdefault(n, deque(maxlen=RECENT)).append((float(pos[i, 2]), self.state[n]))
+                entry = (float(pos[i, 2]), self.state[n], self.link_health.pauses)
+                self.recent.setdefault(n, deque(maxlen=RECENT)).append(entry)
             fresh = self.links.silence[i] <= self.shield_cfg.link_timeout
             if fresh and cut_by_firmware(bits.get(n, 0)) and n not in self.cut and self.state[n] != "idle":
                 self.cut[n] = self._cut_at(n)
@@ -237,13 +239,15 @@ class Landing:
         self._land(clear)
 
     def _cut_at(self, n: str) -> tuple[float, str]:
-        """Where a drone the firmware cut was: the highest of its last :data:`RECENT` ticks and its state then
-        (the supervisor's report arrives up to a tick late, later still after a pause of the host, by when the
-        drone has fallen)."""
+        """Where a drone the firmware cut was, and its state then: the supervisor's report arrives a tick or two
+        after the cut (a drone falls 0.5 m in 0.3 s), so two ticks back; after a pause of the host (in the last
+        :data:`RECENT` ticks), the tick before the pause, when the keep-alives last flowed."""
         seen = list(self.recent.get(n, ()))
         if not seen:
             return self.last_seen.get(n, float("nan")), self.state[n]
-        return max(seen, key=lambda zs: zs[0])
+        paused = [k for k in range(1, len(seen)) if seen[k][2] != seen[k - 1][2]]
+        z, state, _ = seen[paused[0] - 1] if paused else seen[max(0, len(seen) - 3)]
+        return z, state
 
     # ------------------------------------------------------------ landing
     def _poses_fresh(self) -> bool:
@@ -331,7 +335,10 @@ class Landing:
             z = self.last_seen.get(n, float("nan"))
             if n in self.cut:
                 at, was = self.cut[n]
-                out[n] = f"cut in the air at {at:.2f} m ({was})" if not at < 0.05 else f"stopped on the ground ({was})"
+                if not at < 0.05:
+                    out[n] = f"cut in the air at {at:.2f} m ({was})"
+                else:  # on the floor already: a landing drone locked by its firmware (the keep-alive stopped) is down
+                    out[n] = "landed" if was in ("landing", "landed") else f"stopped on the ground ({was})"
             elif self.state[n] in ("landed", "idle"):
                 out[n] = "landed"
             elif self.state[n] == "lost":

@@ -179,7 +179,7 @@ class Flight(Landing, Sequencing):
         self.landing_from: dict[str, np.ndarray] = {}  # where each landing began (its landing column)
         self.cut: dict[str, tuple[float, str]] = {}  # drones whose motors were cut: height, state then
         self.last_seen: dict[str, float] = {}  # last measured height per drone
-        self.recent: dict[str, deque[tuple[float, str]]] = {}  # per drone its last ticks' heights and states
+        self.recent: dict[str, deque[tuple[float, str, int]]] = {}  # per drone, its last ticks: height, state, pauses
         self.ended: dict[str, str] = {}  # how each drone ended (after run)
         self.valid_pos = np.full((D, 3), np.nan)  # each drone's last valid (known, fresh) position
         self.valid_t = np.full(D, -np.inf)  # and when it was measured (clock)

@@ -363,8 +363,9 @@ class SimCrazyflie:
             target, target_vel, done = self.plan.at(now)
             if self.plan.yaw is not None:
                 self.sp_yaw = self.plan.yaw
-            if self.plan.landing and done and self.est_pos[2] < 0.05:
-                self.motors_on, self.mode, self.plan = False, "idle", None  # landed: the planner stops the motors
+            # landed: the trajectory ended at the floor and the drone sits on it; the planner stops the motors
+            if self.plan.landing and done and self.est_pos[2] < 0.05 and (self.pos[2] <= 0.005 or self._settled(now)):
+                self.motors_on, self.mode, self.plan = False, "idle", None
                 return
             self.sp_pos, self.sp_vel, self.sp_acc = target, target_vel, np.zeros(3)
         command = np.zeros(3) if levelled else self._position_loop()
@@ -393,6 +394,10 @@ class SimCrazyflie:
             acc[:2] *= self.dyn.max_acc_xy / horizontal
         acc[2] = float(np.clip(acc[2], -self.dyn.max_acc_z, self.dyn.max_acc_z))
         return acc
+
+    def _settled(self, now: float) -> bool:
+        """A second past the end of the landing trajectory (the estimate says down, the floor was not met)."""
+        return self.plan is not None and now - self.plan.t0 - self.plan.duration > 1.0
 
     def supervisor_bits(self) -> int:
         finished = self.plan is not None and self.now >= self.plan.t0 + self.plan.duration
