@@ -58,3 +58,18 @@ def test_published_weights_play_their_manifest_metrics(manifest: Path, zoo: str)
         resolve_policy(_name(doc)), doc["task"], played, episodes=episodes, seeds=[EVAL_SEED + doc["seed"]]
     )
     assert result.mean == pytest.approx(doc["metrics"][zoo], rel=0, abs=1e-9, nan_ok=True), (_name(doc), zoo)
+
+
+def test_a_smoke_tests_weights_answer_the_short_name_only_when_no_other_benchmark_has_them(tmp_path, monkeypatch):
+    from atdrone.resolve import WEIGHTS_ENV, resolve
+
+    for bench, smoke in (("quick", True), ("paper_budget", False)):
+        folder = tmp_path / bench / "weights" / "sp"
+        folder.mkdir(parents=True)
+        source = RESULTS / "quick" / "weights" / "sp" / "4p2e1o"
+        (folder / "4p2e1o.pt").write_bytes(source.with_suffix(".pt").read_bytes())
+        doc = {**json.loads(source.with_suffix(".json").read_text()), "benchmark": bench, "smoke_test": smoke}
+        (folder / "4p2e1o.json").write_text(json.dumps(doc))
+    monkeypatch.setenv(WEIGHTS_ENV, f"{tmp_path / 'quick'}:{tmp_path / 'paper_budget'}")
+    assert resolve("weights:sp/4p2e1o").checkpoint == tmp_path / "paper_budget" / "weights" / "sp" / "4p2e1o.pt"
+    assert resolve("weights:quick/sp/4p2e1o").checkpoint == tmp_path / "quick" / "weights" / "sp" / "4p2e1o.pt"
