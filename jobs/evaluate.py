@@ -47,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1-zoo4, validation), JSON path, or all (zoo1-zoo4)")
     p.add_argument("--episodes", type=_positive_int, default=500, help="episodes per seed and cell (default 500)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default: 0)")
+    p.add_argument("--cross-task", action="store_true", help="let a policy trained on one task play another")
     p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     return p
 
@@ -61,14 +62,16 @@ def main(argv: list[str] | None = None) -> int:
     from atdrone.config import TASK_NAMES, ConfigError, load_task
     from atdrone.policies.zoo import ZOO_NAMES, PolicyError, load_zoo
     from atdrone.resolve import resolve
-    from atdrone.teams.evaluation import evaluate_grid
+    from atdrone.teams.evaluation import evaluate_grid, task_fit
     from atdrone.teams.reports import format_table, write_report
 
     try:
         tasks = [load_task(t) for t in (TASK_NAMES if args.task == "all" else [args.task])]
-        zoos = [load_zoo(z) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
+        one_task = tasks[0] if len(tasks) == 1 else None  # with --task all, each task's drones are found per cell
+        zoos = [load_zoo(z, one_task) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
         found = resolve(args.policy)  # a rule, member id, models:/ URI, checkpoint file or zoo member
         learner = found.policy()
+        task_fit(learner, tasks, cross_task=args.cross_task)  # a policy of another task only when asked
     except (ConfigError, PolicyError) as exc:
         return _fail(exc)
     for zoo in zoos:
@@ -76,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROG}: warning: zoo {zoo.name} is missing {', '.join(zoo.missing)}; skipped", file=sys.stderr)
     if all(zoo.missing for zoo in zoos):
         return _fail(f"no zoo has all its members ({', '.join(z.name for z in zoos)}); nothing to evaluate")
-    cells = evaluate_grid(learner, tasks, zoos, args.episodes, args.seeds)
+    cells = evaluate_grid(learner, tasks, zoos, args.episodes, args.seeds, cross_task=args.cross_task)
     print(format_table(cells, args.policy, args.episodes, args.seeds))
     label = re.sub(r"[^A-Za-z0-9._-]+", "_", Path(found.label).stem if found.kind == "checkpoint" else found.label)
     stem = f"{label}_{'all' if args.task == 'all' else tasks[0].name}_{'all' if args.zoo == 'all' else zoos[0].name}"
