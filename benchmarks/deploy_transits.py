@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from atdrone.config import load_task
-from atdrone.deploy.loop import SPAWN_DRAWS
+from atdrone.deploy.sequence import SPAWN_DRAWS
 from atdrone.deploy.shield import Obstacles, ShieldConfig, geofence, push_out_of_obstacles
 from atdrone.deploy.transit import TransitBlocked, plan_transit, separated_spawn
 from atdrone.envs.core import spawn

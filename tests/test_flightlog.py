@@ -193,3 +193,13 @@ def test_ground_speed_is_the_median_while_tracking_by_hand() -> None:
     assert ground_speed(flight) == pytest.approx(0.20)
     assert ground_speed(flight[flight.drone != "q"]) == pytest.approx(0.30)
     assert math.isnan(ground_speed(flight[flight.role == "evader"]))
+
+
+def test_how_each_drone_ended_is_in_the_summary_and_its_text(tmp_path: Path) -> None:
+    log = hand_log()
+    log.meta["endings"] = {"a": "landed", "b": "cut in the air at 0.42 m (flying)", "c": "lost (last seen at 0.50 m)"}
+    s = summarize(log.write(tmp_path / "flight"))
+    assert s["endings"] == log.meta["endings"]
+    text = format_summary(s)
+    assert "drones: a landed, b cut in the air at 0.42 m (flying), c lost (last seen at 0.50 m)" in text, text
+    assert summarize(hand_log().write(tmp_path / "older"))["endings"] == {}  # logs written before keep working

@@ -15,7 +15,14 @@ Modules, each importing only from those above it and from the layers below deplo
 - ``flightlog``: per tick and drone rows, Parquet, plots, the MLflow deploy run, the summary.
 - ``preflight``: the dry run's checks (tracking, spawn regions, batteries, the frame,
   the observation agreement with ``BatchedPursuit``, the command path).
-- ``loop``: the 10 Hz loop and the episode sequence; ``job``: the whole deploy job.
+- ``links``: link health (a paused host told from a lost drone); ``reactions``: one severity
+  order for fault reactions.
+- ``simdrone`` (one drone's firmware model), ``simradio`` (the Crazyradio model),
+  ``simproc`` (the fleet in a process of its own).
+- ``loop``: the 10 Hz loop (``Flight``), made of ``episode`` (one episode), ``sequence``
+  (spawn draws and transits between episodes) and ``landing`` (landing, reactions,
+  confirmation, how each drone ended); ``team`` and ``faults`` beside it; ``job``: the
+  whole deploy job.
 
 cflib and motioncapture are the optional extra ``atdrone[deploy]``: nothing outside this
 package imports them, and this package imports them only where it talks to hardware.
