@@ -1,4 +1,5 @@
-"""The benchmark's statistics, report, kept weights and config checks, on made-up cell records (no Ray)."""
+"""The benchmark's report, kept weights and config checks, on made-up cell records (no Ray); the statistics
+themselves: tests/test_benchmark_stats.py."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import pandas as pd
 import pytest
 import scipy.stats
 
-from atdrone.benchmark import report, stats
+from atdrone.benchmark import report
 from atdrone.benchmark.cells import Cell, cells, experiment_document, load_benchmark
 from atdrone.benchmark.report import write_report
 from atdrone.benchmark.weights import keep_weights
@@ -32,43 +33,6 @@ DOC: dict[str, Any] = {
     "bootstrap_reps": 300,
     "methods": {"sp": {"experiment": "sp_quick"}, "hola": {"experiment": "hola_quick"}},
 }
-
-
-# ------------------------------------------------------------------ statistics against plain loops
-def test_iqm_is_the_mean_of_the_middle_half() -> None:
-    x = np.arange(1.0, 9.0).reshape(4, 2)  # 1..8: the middle half is 3..6
-    assert stats.iqm(x) == pytest.approx(4.5)
-
-
-def test_probability_of_improvement_counts_pairs_per_task_ties_half() -> None:
-    rng = np.random.default_rng(3)
-    x, y = rng.integers(0, 3, (4, 3)).astype(float), rng.integers(0, 3, (5, 3)).astype(float)
-    per_task = []
-    for t in range(3):
-        wins = sum((a > b) + 0.5 * (a == b) for a in x[:, t] for b in y[:, t])
-        per_task.append(wins / (len(x) * len(y)))
-    assert stats.probability_of_improvement(x, y) == pytest.approx(np.mean(per_task))
-
-
-def test_stratified_bootstrap_resamples_runs_within_each_task() -> None:
-    x = np.array([[0.0, 10.0], [1.0, 11.0], [2.0, 12.0]])
-    sample = stats.stratified_resample(x, np.random.default_rng(0))
-    assert set(sample[:, 0]) <= {0.0, 1.0, 2.0} and set(sample[:, 1]) <= {10.0, 11.0, 12.0}
-    value, low, high = stats.bootstrap_interval(x, stats.iqm, 500, seed=1)
-    assert low <= value <= high
-    assert stats.bootstrap_interval(x, stats.iqm, 500, seed=1) == (value, low, high)  # seeded
-
-
-def test_paired_difference_is_a_t_interval_over_seeds() -> None:
-    a = pd.DataFrame({"SUC": [50.0, 60.0, 40.0]}, index=[0, 1, 2])
-    b = pd.DataFrame({"SUC": [45.0, 50.0, 41.0]}, index=[0, 1, 2])
-    d = stats.paired_difference(a, b, ["SUC"])
-    assert d is not None
-    diffs = np.array([5.0, 10.0, -1.0])
-    se = diffs.std(ddof=1) / np.sqrt(3)
-    t = scipy.stats.t.ppf(0.975, 2)
-    assert d["SUC"]["diff"] == pytest.approx(diffs.mean()) and d["SUC"]["se"] == pytest.approx(se)
-    assert d["SUC"]["ci95"] == pytest.approx([diffs.mean() - t * se, diffs.mean() + t * se])
 
 
 # ------------------------------------------------------------------ the report on made-up records
