@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         from atdrone.benchmark.cells import cells
         from atdrone.benchmark.job import finished
 
-        again = " ".join([PROG, *(argv if argv is not None else sys.argv[1:])])
+        again = " ".join(["python", PROG, *(argv if argv is not None else sys.argv[1:])])
         print(
             f"{PROG}: interrupted; kept {len(finished(cfg))} finished cell(s) of {len(cells(cfg))} in {cfg.folder}; "
             f"resume with: {again}",

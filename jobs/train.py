@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_experiment(cfg, address=args.address, resume=args.resume, tracking_uri=args.tracking_uri)
     except BaseException as exc:  # one line by kind, never a Ray traceback
         run_dir = Path(cfg.out_dir) / cfg.name
-        again = " ".join([PROG, *(argv if argv is not None else sys.argv[1:])])
+        again = " ".join(["python", PROG, *(argv if argv is not None else sys.argv[1:])])
         again += "" if args.resume else " --resume"
         if interrupted(exc):
             print(f"{PROG}: interrupted; kept {kept(run_dir)} in {run_dir}; resume with: {again}", file=sys.stderr)

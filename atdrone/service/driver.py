@@ -224,7 +224,8 @@ class _Crew:
         ray.kill(self.coordinator, no_restart=True)  # its workers and learners go with it
         ray.get(self.registry.discard_generations.remote(self.cfg.name, generation))
         self.coordinator = COORDINATORS.take()
-        self.start(self.run.saved.get("coordinator"))
+        # the state as a resume reads it (JSON), not the objects it was written from: they may differ in type
+        self.start(read_json(self.run.run_dir / STATE_FILE, "service state").get("coordinator"))
 
     def fold_registry(self) -> None:
         """The registry's write-ahead log folded back into its file (best effort: a reader may hold part of it)."""
