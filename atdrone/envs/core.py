@@ -43,6 +43,12 @@ Episode End
     hit_obstacle (B, P) the index into ``geometry.names`` of the obstacle or wall a
     pursuer hit (-1: none).
 
+Team events
+    With an :class:`~atdrone.envs.events.EventPlan` (``events``) each episode draws a
+    schedule of swaps, drops and joins from its key, held in the state and applied in
+    the step as whole-batch masks; ``info["team_changed"]`` (B, P) names the slots whose
+    drone changed, so the policies forget exactly those drones (:mod:`atdrone.envs.events`).
+
 Randomness
     Every episode has a number (its place in the core's sequence of episodes: 0, 1, ...
     from a reset with a seed, continuing through auto-resets in row order) and a key,
@@ -64,6 +70,7 @@ from typing import Any
 import numpy as np
 
 from atdrone.config import TaskConfig, load_task
+from atdrone.envs import events as ev_
 from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
 from atdrone.envs.geometry import Geometry, nearest_obstacles, offsets
 from atdrone.envs.kinematics import advance, turn
@@ -98,7 +105,9 @@ class PursuitState:
     pos (B, N, 2) metres; heading (B, N) radians; captured (B, E); t (B,) steps;
     ep_return (B,); ep_collided (B,); wander_heading (B, E); wander_left (B, E) steps;
     prev_dist (B, E) nearest-pursuer distance of each evader after the last step;
-    episode (B,) the number of each row's episode and key (B,) uint64 its random key.
+    episode (B,) the number of each row's episode and key (B,) uint64 its random key;
+    present (B, P) which pursuer slots hold a drone; ev_kind, ev_step, ev_slot, ev_pick
+    (B, K) each episode's team events (:mod:`atdrone.envs.events`; K = 0 without).
     """
 
     pos: np.ndarray
@@ -112,6 +121,11 @@ class PursuitState:
     prev_dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
     episode: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint64))
+    present: np.ndarray = field(default_factory=lambda: np.ones((0, 0), dtype=bool))
+    ev_kind: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int8))
+    ev_step: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+    ev_slot: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+    ev_pick: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     def copy(self) -> PursuitState:
         return PursuitState(**{k: v.copy() for k, v in self.__dict__.items()})
@@ -270,7 +284,9 @@ def judge(pos: np.ndarray, captured: np.ndarray, cfg: TaskConfig, geometry: Geom
 class BatchedPursuit:
     """B AT-Drone pursuit environments stepped together (see the module docstring)."""
 
-    def __init__(self, task: TaskConfig | str, num_envs: int = 1, seed: int | None = None) -> None:
+    def __init__(
+        self, task: TaskConfig | str, num_envs: int = 1, seed: int | None = None, events: ev_.EventPlan | None = None
+    ) -> None:
         if not isinstance(num_envs, int | np.integer) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         self.cfg = load_task(task)
@@ -284,6 +300,7 @@ class BatchedPursuit:
         self.root = root_key(seed)  # the episode keys' root
         self.next_episode = 0  # the number of the next episode a reset or an auto-reset starts
         self.pairs = _pairs(self.num_p).copy()  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
+        self.events = events if events is not None and len(events) else None  # the team events of every episode
         self.state = self._fresh_state(np.arange(self.num_envs))  # what reset() starts
         self._obs: np.ndarray | None = None
         # the whole batch just before the last auto-reset (to show how episodes ended)
@@ -309,7 +326,11 @@ class BatchedPursuit:
             wander_left=draws.integers(lo, hi + 1, size=(n, e)),
             episode=np.asarray(episodes, dtype=np.int64),
             key=keys,
+            present=np.ones((n, self.num_p), dtype=bool),
+            **ev_.draw_schedule(self.events, keys),
         )
+        if self.events is not None:  # every slot eligible until a Match says which are the learners'
+            state.ev_slot = ev_.bind_slots(self.events, state.ev_pick, np.zeros((n, self.num_p), dtype=bool))
         state.prev_dist = self._evader_distances(state.pos)
         return state
 
@@ -375,8 +396,20 @@ class BatchedPursuit:
         """Observations (B, num_p, obs_dim) float32 of ``state`` (default: current): :func:`observe` of its poses.
 
         ``obstacles``: the distance and normal of each pursuer's nearest obstacle, when already known.
+        A landed drone (not ``present``) sees nothing and no one sees it.
         """
-        return observe(self.poses(state), obstacles)
+        obs = observe(self.poses(state), obstacles)
+        if self.events is not None:
+            present = (self.state if state is None else state).present
+            if not present.all():
+                ev_.hide_absent(obs, present, self.num_e)
+        return obs
+
+    def bind_events(self, rows: np.ndarray, learner: np.ndarray) -> None:
+        """Choose the slots of the team events of the episodes in ``rows`` whose learners fill ``learner``
+        (len(rows), P) bool (a Match calls this once it has drawn their teams)."""
+        if self.events is not None and len(rows):
+            self.state.ev_slot[rows] = ev_.bind_slots(self.events, self.state.ev_pick[rows], learner)
 
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -392,6 +425,9 @@ class BatchedPursuit:
         # Pursuers: turn at most 45 degrees, then move at constant speed.
         head_p = turn(s.heading[:, :P], actions)
         pos_p = advance(s.pos[:, :P], head_p, self.arena.step, self.geometry.width, self.geometry.height)
+        absent = self.events is not None and not s.present.all()
+        if absent:  # landed drones wait at their parking spots, outside the arena
+            pos_p = np.where(s.present[..., None], pos_p, ev_.parked(P))
 
         # Evaders: escape policy, wandering when calm.
         ev = evader_step(
@@ -413,6 +449,8 @@ class BatchedPursuit:
 
         # Capture and collision.
         judged = judge(pos, s.captured, self.cfg, self.geometry)
+        if absent:
+            judged = ev_.absent_judgement(judged, s.present, self.pairs)
         newly, captured, dist_pe = judged.captured_now, judged.captured, judged.evader_distance
         pair_d, pair_hit, hit_obstacle, collided = (
             judged.pair_distance,
@@ -420,7 +458,7 @@ class BatchedPursuit:
             judged.hit_obstacle,
             judged.collided,
         )
-        p_obst = judged.obstacles
+        p_obst: tuple[np.ndarray, np.ndarray] | None = judged.obstacles
         any_collision = collided.any(-1)
 
         # Shared reward.
@@ -453,7 +491,17 @@ class BatchedPursuit:
             prev_dist=np.where(captured, 0.0, dist_pe),
             episode=s.episode.copy(),
             key=s.key.copy(),
+            present=s.present,
+            ev_kind=s.ev_kind,
+            ev_step=s.ev_step,
+            ev_slot=s.ev_slot,
+            ev_pick=s.ev_pick,
         )
+        changed = None
+        if self.events is not None:
+            changed = ev_.happen(self.state, ~done, self.cfg, self._evader_distances)
+            if changed.any():
+                p_obst = None  # a drone moved by an event: its nearest obstacle is worked out again
         obs = self.observe(obstacles=p_obst)
         info: dict[str, Any] = {
             "done_reason": reason,
@@ -467,6 +515,8 @@ class BatchedPursuit:
             "captured_now": newly,
             "final_obs": obs.copy(),
         }
+        if changed is not None:
+            info["team_changed"] = changed  # (B, P) slots whose drone was swapped, dropped or joined this step
         if done.any():
             self.final_state = self.state.copy()
             obs[done] = self.observe(self._reset_envs(np.flatnonzero(done)))

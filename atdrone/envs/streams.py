@@ -23,10 +23,12 @@ _UNIT = 2.0**-53
 # Counter ranges, kept apart: a row's step draws count calls from 0 (the step's key is
 # the episode key folded with the step number), RowStream.rows children from CHILD,
 # the drones' keys for policies from DRONE_DRAWS + slot; an episode's start draws
-# come from its key folded with SPAWN_DRAWS.
+# come from its key folded with SPAWN_DRAWS, its team events' from EVENT_DRAWS (+ 1:
+# a joining drone's spawn, + 2: the member that takes a changed slot).
 CHILD = 1 << 40
 DRONE_DRAWS = 1 << 50
 SPAWN_DRAWS = 1 << 62
+EVENT_DRAWS = 3 << 61
 
 
 def mix(x: np.ndarray) -> np.ndarray:

@@ -47,6 +47,10 @@ class DroneMemory(Protocol):
         """Forget the drones of the environments where ``done`` (one entry per environment row) is true."""
         ...
 
+    def forget(self, env: np.ndarray, key: np.ndarray) -> None:
+        """Forget the drones (env (M,), key (M,)) alone: a new drone took their slot mid-episode."""
+        ...
+
 
 class StatelessMemory:
     """The memory of a network that reads the current observation only: inputs are the observations."""
@@ -65,6 +69,9 @@ class StatelessMemory:
         """Nothing to remember."""
 
     def reset(self, done: np.ndarray) -> None:
+        """Nothing to forget."""
+
+    def forget(self, env: np.ndarray, key: np.ndarray) -> None:
         """Nothing to forget."""
 
 
@@ -127,3 +134,9 @@ class ObsHistory:
         """Forget the drones of the environments where ``done`` is true (rows beyond the memory hold nothing)."""
         done = np.asarray(done, dtype=bool)[: self.shape[0]]
         self.fresh[: len(done)][done] = True
+
+    def forget(self, env: np.ndarray, key: np.ndarray) -> None:
+        """Forget the drones (env (M,), key (M,)) alone (those beyond the memory hold nothing)."""
+        B, K, _ = self.shape
+        inside = (np.asarray(env) < B) & (np.asarray(key) < K)
+        self.fresh[np.asarray(env)[inside], np.asarray(key)[inside]] = True

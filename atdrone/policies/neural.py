@@ -77,6 +77,11 @@ class NeuralPolicy:
         else:
             self.memory.reset(done)
 
+    def forget(self, env: np.ndarray, slot: np.ndarray) -> None:
+        """Forget the drones (env (M,), slot (M,)) alone: another drone took their slot mid-episode."""
+        if self.memory is not None:
+            self.memory.forget(env, slot)
+
     def inputs_of(self, obs: np.ndarray, env: np.ndarray, key: np.ndarray) -> np.ndarray:
         """Network inputs (M, input_dim) of observations (M, D) of drones (env, key), from their memory."""
         env, key = np.asarray(env), np.asarray(key)
@@ -92,12 +97,18 @@ class NeuralPolicy:
 
     @torch.no_grad()
     def act_obs(
-        self, obs: np.ndarray, env: np.ndarray, key: np.ndarray, noise_keys: np.ndarray | None = None
+        self,
+        obs: np.ndarray,
+        env: np.ndarray,
+        key: np.ndarray,
+        noise_keys: np.ndarray | None = None,
+        num_e: int | None = None,
     ) -> np.ndarray:
         """Actions (M,) in [-1, 1] for observations (M, D) of drones with memory keys (env (M,), key (M,)).
 
         When sampling, the noise comes from ``noise_keys`` (M,) (one counter-based draw per
-        drone) if given, else from the policy's generator.
+        drone) if given, else from the policy's generator. ``num_e``: evaders in the observation (default:
+        read off its width for this policy's team size; given, the network acts in a team of another size).
         """
         M = len(obs)
         if M == 0:
@@ -106,7 +117,7 @@ class NeuralPolicy:
         inputs = self.inputs_of(obs, env, key)
         padded = np.zeros((-M // PAD_ROWS * -PAD_ROWS, inputs.shape[1]), inputs.dtype)
         padded[:M] = inputs
-        dist = self.model.dist(torch.from_numpy(padded), self.evaders(obs.shape[-1]))
+        dist = self.model.dist(torch.from_numpy(padded), num_e or self.evaders(obs.shape[-1]))
         mean, std = dist.mean, dist.stddev
         self.last_dist = (mean[:M].numpy().astype(np.float64), std[:M].numpy().astype(np.float64))
         u = mean
@@ -123,8 +134,12 @@ class NeuralPolicy:
         return actions
 
     def act(self, batch: DroneBatch) -> np.ndarray:
-        """Actions (M,) for the drones of ``batch``: its observations, keyed by (env, slot); noise from its keys."""
-        return self.act_obs(batch.obs, batch.env, batch.slot, batch.keys)
+        """Actions (M,) for the drones of ``batch``: its observations, keyed by (env, slot); noise from its keys.
+
+        With poses the evader count is the arena's, so the network (which pools teammates and evaders) acts in
+        a team of any size."""
+        num_e = batch.poses.arena.num_e if batch.poses is not None else None
+        return self.act_obs(batch.obs, batch.env, batch.slot, batch.keys, num_e)
 
 
 def load_policy(path: str | Path, deterministic: bool = True) -> NeuralPolicy:

@@ -16,6 +16,12 @@ key of its episode, step and slot (``DroneBatch.keys``), so an episode plays the
 whichever row it runs in. :meth:`Match.keep` lets finished rows leave the batch; the
 policies keep seeing every remaining drone under its first row number (its seat), so
 their per-episode memory needs no moving.
+
+With team events in the core (:mod:`atdrone.envs.events`) the Match tells the core which
+slots are the learners' (events hit partner slots by default), and when a swap or join
+puts a new drone in a partner slot it draws the member that flies it (another member of
+the partner set, from the episode's key) and has every partner policy forget that slot's
+drone (:meth:`forget`); :meth:`changed_learners` names the learner drones to forget.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import numpy as np
 
 from atdrone.envs.core import BatchedPursuit
 from atdrone.envs.observation import Poses
-from atdrone.envs.streams import DRONE_DRAWS, fold
+from atdrone.envs.streams import DRONE_DRAWS, EVENT_DRAWS, fold, unit
 from atdrone.policies.base import DroneBatch, Policy
 from atdrone.policies.zoo import Zoo
 
@@ -47,6 +53,7 @@ class Match:
         num_ctrl: int | None = None,
         shuffle_slots: bool = True,
         sampler: PartnerSampler | None = None,
+        seats: Sequence[int] | None = None,
     ) -> None:
         self.core = core
         self.partners: list[Policy] = (
@@ -60,11 +67,16 @@ class Match:
             raise ValueError(f"num_ctrl must be in 1..{core.num_p}, got {self.num_ctrl}")
         if self.num_unctrl and not self.partners:
             raise ValueError(f"{self.num_unctrl} partner slots but no partner policies")
-        self.shuffle_slots = shuffle_slots
+        self.shuffle_slots = shuffle_slots and seats is None
         self.sampler = sampler or self._uniform
         self.seed = int(np.random.SeedSequence(seed).entropy)  # type: ignore[arg-type]  # with an episode key: its team
         B = core.num_envs
-        self.slots = np.tile(np.arange(core.num_p), (B, 1))  # learners first, then partners
+        order = np.arange(core.num_p)  # learners first, then partners; ``seats``: the learners' slots, fixed
+        if seats is not None:
+            if len(seats) != self.num_ctrl or len(set(seats)) != len(seats) or not set(seats) <= set(range(core.num_p)):
+                raise ValueError(f"seats must be {self.num_ctrl} distinct slots of 0..{core.num_p - 1}, got {seats}")
+            order = np.r_[np.asarray(seats, dtype=np.intp), np.setdiff1d(order, seats)]
+        self.slots = np.tile(order, (B, 1))
         self.members = np.zeros((B, self.num_unctrl), dtype=np.intp)
         self.seats = np.arange(B)  # the row number the policies know each row by (its first row)
         self.num_seats = B
@@ -99,6 +111,9 @@ class Match:
             drawn = np.concatenate([self.sampler(rng, 1) for rng in rngs])
             self.members[envs] = drawn
             self._count(drawn)
+        learner = np.zeros((len(envs), P), dtype=bool)
+        np.put_along_axis(learner, self.slots[envs, : self.num_ctrl], True, axis=1)
+        self.core.bind_events(envs, learner)
 
     def _count(self, drawn: np.ndarray) -> None:
         """Add the drawn profiles (n, num_unctrl) to ``drawn``: one Python step per distinct profile, not per env."""
@@ -163,6 +178,34 @@ class Match:
         poses = self.poses() if poses is None else poses
         return DroneBatch(obs=self._obs[env, slot], env=self.seats[env], slot=slot, poses=poses, keys=keys)
 
+    def _replace(self, changed: np.ndarray) -> None:
+        """New drones in the ``changed`` (B, P) slots: a swapped or joined partner slot gets another member of
+        the partner set (drawn from the episode's key, step and slot); every partner policy forgets the slot."""
+        env, j = np.nonzero(np.take_along_axis(changed, self.partner_slots, axis=1))
+        if not len(env):
+            return
+        slot = self.partner_slots[env, j]
+        n = len(self.partners)
+        s = self.core.state
+        arriving = s.present[env, slot]  # a swap or a join; a drop leaves the member in its (empty) slot
+        u = unit(fold(fold(s.key[env], EVENT_DRAWS + 2), s.t[env] * self.core.num_p + slot))
+        other = (self.members[env, j] + 1 + (u * (n - 1)).astype(np.intp)) % n if n > 1 else self.members[env, j]
+        self.members[env, j] = np.where(arriving, other, self.members[env, j])
+        self.forget(env, slot)
+
+    def forget(self, env: np.ndarray, slot: np.ndarray) -> None:
+        """Every partner policy with per-drone memory forgets the drones in rows ``env`` and slots ``slot`` (M,)."""
+        for policy in self.partners:
+            forget = getattr(policy, "forget", None)
+            if forget is not None:
+                forget(self.seats[env], slot)
+
+    def changed_learners(self, changed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The learner drones a team event replaced (``info["team_changed"]`` (B, P)): rows and learner indices
+        (M,) each, for the learners' memory to forget."""
+        env, k = np.nonzero(np.take_along_axis(changed, self.learner_slots, axis=1))
+        return env, k
+
     def learner_view(self, obs: np.ndarray) -> np.ndarray:
         return obs[self._rows, self.learner_slots]
 
@@ -224,6 +267,9 @@ class Match:
         info["actions"] = actions  # every slot's turn as executed: learners' and partners'
         info["dists"] = dists
         info["final_obs"] = self.learner_view(info["final_obs"])
+        changed = info.get("team_changed")
+        if changed is not None and changed.any():
+            self._replace(changed)
         info["team"] = self.team()
         if dones.any():
             for policy in self.partners:
