@@ -395,7 +395,12 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
         default=None,
         help=f"task name ({', '.join(TASK_NAMES)}), JSON path, or all (default: the policy's task, else 4p2e1o)",
     )
-    p.add_argument("--zoo", default="zoo1", help="zoo name (zoo1-zoo4, validation), JSON path, or all (zoo1-zoo4)")
+    p.add_argument(
+        "--zoo",
+        default="zoo1",
+        help="zoo name (zoo1-zoo4, validation), a protocol of team events (zoo3+swap, zoo3+drop, zoo3+drop+join), "
+        "JSON path, or all (zoo1-zoo4)",
+    )
     p.add_argument(
         "--episodes", type=_episodes, default=500, help=f"episodes per seed and cell, <= {MAX_EPISODES:,} (default 500)"
     )
@@ -424,6 +429,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from atdrone.policies.zoo import ZOO_NAMES, load_zoo
     from atdrone.resolve import resolve
     from atdrone.teams.evaluation import evaluate_grid, task_fit
+    from atdrone.teams.protocols import is_protocol, load_protocol
     from atdrone.teams.reports import format_table, write_report
 
     if len(set(args.seeds)) != len(args.seeds):
@@ -432,7 +438,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     task_arg = args.task or found.task or "4p2e1o"
     tasks = [load_task(t) for t in (TASK_NAMES if task_arg == "all" else [task_arg])]
     one_task = tasks[0] if len(tasks) == 1 else None  # with --task all, each task's drones are found per cell
-    zoos = [load_zoo(z, one_task) for z in (ZOO_NAMES if args.zoo == "all" else [args.zoo])]
+    names = ZOO_NAMES if args.zoo == "all" else [args.zoo]
+    protocols = [load_protocol(z) if is_protocol(z) else None for z in names]  # a protocol plays its zoo
+    zoos = [load_zoo(p.zoo if p else z, one_task) for z, p in zip(names, protocols, strict=True)]
     learner = found.policy()
     notes = task_fit(learner, tasks, cross_task=args.cross_task)
     for note in notes:
@@ -452,13 +460,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
             )
     label = "".join(c if c.isalnum() or c in "._-" else "_" for c in found.label)
     task_part = "all" if task_arg == "all" else tasks[0].name
-    zoo_part = "all" if args.zoo == "all" else zoos[0].name
+    zoo_part = "all" if args.zoo == "all" else (protocols[0] or zoos[0]).name
     stem = f"{label}_{task_part}_{zoo_part}"
     total = len(tasks) * len(playable) * args.episodes * len(args.seeds)
     cells: list[Any] = []
     with tqdm(total=total, unit="ep", desc="evaluate", file=sys.stderr, disable=args.no_progress) as bar:
         for task in tasks:  # the report is rewritten after each cell: a long grid keeps what it has played
-            for zoo in zoos:
+            for zoo, protocol in zip(zoos, protocols, strict=True):
                 cells += evaluate_grid(
                     learner,
                     [task],
@@ -467,9 +475,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
                     args.seeds,
                     on_progress=bar.update,
                     cross_task=args.cross_task,
+                    protocol=protocol,
                 )
                 json_path, csv_path = write_report(args.out_dir, stem, cells, args.policy, args.episodes, args.seeds)
     print(format_table(cells, args.policy, args.episodes, args.seeds))
+    for cell in cells:  # a protocol's team events: before / after the first event, recovery time
+        if cell.evaluation is not None and cell.evaluation.protocol:
+            print(f"\n{cell.task} {cell.zoo}: " + ", ".join(_event_line(cell.evaluation)))
     print(f"\nwrote {json_path} and {csv_path}")
     if args.tracking_uri:
         from atdrone.teams.reports import report_document
@@ -479,6 +491,15 @@ def run_evaluate(args: argparse.Namespace) -> int:
         run_id, link = record_evaluation(document, [json_path, csv_path], stem, args.tracking_uri)
         print(f"MLflow run {run_id} (experiment 'evaluate'): {link}")
     return 0
+
+
+def _event_line(evaluation: Any) -> list[str]:
+    """Each event metric of an evaluation with its 95 % interval, as text."""
+    from atdrone.teams.protocols import EVENT_METRICS
+
+    value, interval = evaluation.pooled, evaluation.interval
+    unit = lambda m: " steps" if m == "REC" else " %"
+    return [f"{m} {value[m]:.1f}{unit(m)} [{interval[m][0]:.1f}, {interval[m][1]:.1f}]" for m in EVENT_METRICS]
 
 
 def _service_failed(args: argparse.Namespace, exc: Exception) -> int:

@@ -16,6 +16,9 @@ Each metric comes with a 95 % confidence interval over the episodes (all seeds p
 Wilson's score interval for the percentages SUC and COL, the normal interval of a mean
 for AST and REW. With several seeds, the Student-t interval of the per-seed values says
 how much a seed moves the result; one seed has no spread to report, so none is printed.
+With a protocol of team events (:mod:`atdrone.teams.protocols`) every record also holds
+its schedule, the step of its first event and the steps from it to the next capture, and
+the metrics add EVENT_METRICS (SUC/COL before and after the event, recovery time).
 """
 
 from __future__ import annotations
@@ -30,10 +33,12 @@ import numpy as np
 
 from atdrone.config import ConfigError, TaskConfig, load_task
 from atdrone.envs.core import CAPTURED, DONE_REASONS, BatchedPursuit
+from atdrone.envs.events import EventPlan, describe
 from atdrone.envs.geometry import NUM_WALLS
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import Zoo, load_zoo
 from atdrone.teams.match import Match, PartnerSampler
+from atdrone.teams.protocols import EVENT_FIELDS, EVENT_METRICS, Protocol, event_counts, event_metrics, load_protocol
 
 if TYPE_CHECKING:  # imported where a frame is made: a learner or rollout actor that never evaluates skips it
     import pandas as pd
@@ -76,14 +81,19 @@ def seed_interval(values: np.ndarray) -> Interval:
 
 
 def episode_intervals(records: pd.DataFrame) -> dict[str, Interval]:
-    """The 95 % interval of each of METRICS over a set of episode records."""
+    """The 95 % interval of each of METRICS (and EVENT_METRICS, for records with events) over episode records."""
     success = records["success"].to_numpy(bool)
-    return {
+    out = {
         "SUC": wilson_interval(int(success.sum()), len(success)),
         "COL": wilson_interval(int(records["collided"].to_numpy(bool).sum()), len(success)),
         "AST": mean_interval(records["length"].to_numpy()[success]),
         "REW": mean_interval(records["return"].to_numpy()),
     }
+    if "event_step" in records:
+        counts, rec = event_counts(records)
+        out.update({k: wilson_interval(hits, total) for k, (hits, total) in counts.items()})
+        out["REC"] = mean_interval(rec)
+    return out
 
 
 @dataclass(frozen=True)
@@ -97,14 +107,20 @@ class Evaluation:
     records: pd.DataFrame  # one row per episode
     zoo_version: str = ""  # the zoo manifest's version of the task's zoos ("" for a zoo it does not list)
     cross_task: tuple[str, ...] = ()  # partners trained on another task (``name@task``), played on purpose
+    protocol: str = ""  # the protocol of team events played ("" for none; then ``zoo`` names it)
+
+    @property
+    def metric_names(self) -> tuple[str, ...]:
+        """METRICS, and EVENT_METRICS when a protocol of team events was played."""
+        return METRICS + EVENT_METRICS if self.protocol else METRICS
 
     @property
     def mean(self) -> dict[str, float]:
-        return {m: float(self.per_seed[m].mean()) for m in METRICS}
+        return {m: float(self.per_seed[m].mean()) for m in self.metric_names}
 
     @property
     def std(self) -> dict[str, float]:
-        return {m: float(self.per_seed[m].std(ddof=0)) for m in METRICS}
+        return {m: float(self.per_seed[m].std(ddof=0)) for m in self.metric_names}
 
     @property
     def pooled(self) -> dict[str, float]:
@@ -121,17 +137,21 @@ class Evaluation:
         """95 % Student-t interval of each metric over the seeds' values; None with one seed."""
         if len(self.per_seed) < 2:
             return None
-        return {m: seed_interval(self.per_seed[m].to_numpy()) for m in METRICS}
+        return {m: seed_interval(self.per_seed[m].to_numpy()) for m in self.metric_names}
 
     def summary(self) -> dict[str, object]:
         row: dict[str, object] = {"task": self.task, "zoo": self.zoo, "learner": self.learner}
+        if self.protocol:
+            row["protocol"] = self.protocol
+        if "num_ctrl" in self.records:
+            row["num_ctrl"] = int(self.records["num_ctrl"].iloc[0])
         row["zoo_version"] = self.zoo_version
         if self.cross_task:
             row["cross_task_partners"] = list(self.cross_task)
         row["episodes"] = len(self.records)
         row["seeds"] = len(self.per_seed)
         interval, over_seeds = self.interval, self.seed_interval
-        for m in METRICS:
+        for m in self.metric_names:
             row[m] = self.mean[m]
             row[f"{m}_std"] = self.std[m]
             row[f"{m}_ci95"] = list(interval[m])
@@ -141,14 +161,17 @@ class Evaluation:
 
 
 def metrics(records: pd.DataFrame) -> dict[str, float]:
-    """SUC, COL, AST, REW of a set of episode records."""
+    """SUC, COL, AST, REW of a set of episode records (and EVENT_METRICS for records with events)."""
     success = records["success"].to_numpy(bool)
-    return {
+    out = {
         "SUC": 100.0 * success.mean(),
         "COL": 100.0 * records["collided"].to_numpy(bool).mean(),
         "AST": float(records["length"][success].mean()) if success.any() else float("nan"),
         "REW": float(records["return"].mean()),
     }
+    if "event_step" in records:
+        out.update(event_metrics(records))
+    return out
 
 
 def crash_shares(records: pd.DataFrame) -> dict[str, float]:
@@ -205,10 +228,9 @@ def crash_breakdown(records: pd.DataFrame) -> dict[str, float]:
 def task_fit(policy: Policy, tasks: Sequence[TaskConfig], cross_task: bool = False) -> list[str]:
     """Check a trained policy against the tasks it is asked to play.
 
-    A network reads 4 * (num_p + num_e) numbers per drone and pools the evaders, so a
-    different pursuer count is a different observation layout: ConfigError. Another task
-    of the same shape is refused (ConfigError naming both tasks) unless ``cross_task``
-    asks for it; then it plays, with a note (returned) saying so.
+    A network pools its teammates and evaders, so it acts in a team of any size. Another task (another
+    size included) is refused (ConfigError naming both tasks) unless ``cross_task`` asks for it; then it
+    plays, with a note (returned) saying so.
     """
     trained_on = getattr(policy, "task", "")
     num_p, num_e = getattr(policy, "num_p", None), getattr(policy, "num_e", None)
@@ -217,12 +239,6 @@ def task_fit(policy: Policy, tasks: Sequence[TaskConfig], cross_task: bool = Fal
     notes = []
     for task in tasks:
         players = task.players
-        if players.num_p != num_p:
-            raise ConfigError(
-                "--task",
-                f"{policy.name} was trained on {trained_on} ({num_p} pursuers): its observation layout does not fit "
-                f"{task.name} ({players.num_p} pursuers)",
-            )
         if task.name != trained_on and not cross_task:
             raise ConfigError(
                 "--task",
@@ -246,27 +262,37 @@ def run_episodes(
     max_envs: int = MAX_ENVS,
     on_progress: Callable[[int], None] | None = None,
     sampler: PartnerSampler | None = None,
+    events: EventPlan | None = None,
+    num_ctrl: int | None = None,
+    seats: Sequence[int] | None = None,
 ) -> pd.DataFrame:
     """Play episodes 0..``episodes``-1 of ``learner`` with ``partners``; one record per episode, in episode order.
 
-    ``sampler`` picks the partner members of each episode (default: uniformly per slot).
+    ``sampler`` picks the partner members of each episode (default: uniformly per slot); ``events``: the team
+    events of every episode; ``num_ctrl``: the learner's slots (default the task's); ``seats``: which slots,
+    fixed (default: drawn per episode).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     cfg = load_task(task)
     n = min(episodes, max_envs)
     core_seed, match_seed = episode_seeds(seed)
-    core = BatchedPursuit(cfg, num_envs=n, seed=core_seed)
-    match = Match(core, partners, seed=match_seed, sampler=sampler)
+    core = BatchedPursuit(cfg, num_envs=n, seed=core_seed, events=events)
+    match = Match(core, partners, seed=match_seed, sampler=sampler, num_ctrl=num_ctrl, seats=seats)
     match.reset()  # episodes 0..n-1; a row that ends starts the next one
     learner.reset(np.ones(n, dtype=bool))
-    rec = {k: np.zeros(episodes, dtype=t) for k, t in _FIELDS.items()}
+    fields = {**_FIELDS, **EVENT_FIELDS} if core.events is not None else _FIELDS
+    rec = {k: np.zeros(episodes, dtype=t) for k, t in fields.items()}
+    if core.events is not None:
+        rec["event_step"][:], rec["recovery"][:] = -1, -1
     teams = np.empty(episodes, dtype=object)
     while core.num_envs:
         playing = core.state.episode.copy()  # the episode each row plays this step
         batch = match.learner_batch()
         actions = learner.act(batch).reshape(core.num_envs, match.num_ctrl)
         _, _, dones, info = match.step(actions)
+        if core.events is not None:
+            _track_events(learner, match, info, playing, rec)
         if not dones.any():
             continue
         learner.reset(match.by_seat(dones))
@@ -285,6 +311,10 @@ def run_episodes(
         rec["learner_crashed"][ep] = np.take_along_axis(hit, slots, axis=1).any(1)
         rec["partner_crashed"][ep] = np.take_along_axis(hit, team["partner_slots"][idx], axis=1).any(1)
         rec["crash"][ep] = crash_kinds(info, idx, slots, core.pairs)
+        if core.events is not None:
+            assert core.final_state is not None  # the batch as the episodes ended
+            fs = core.final_state
+            rec["events"][ep] = describe(fs.ev_kind[idx], fs.ev_step[idx], fs.ev_slot[idx])
         if on_progress is not None:
             on_progress(len(idx))
         if core.next_episode > episodes:  # the rows that ended started episodes past the last: they leave
@@ -297,7 +327,30 @@ def run_episodes(
     out["success"] = out["reason"] == CAPTURED
     out["outcome"] = np.array(DONE_REASONS)[out["reason"].to_numpy()]
     out.insert(1, "seed", seed)
+    out["num_ctrl"] = match.num_ctrl
     return out
+
+
+def _track_events(learner: Policy, match: Match, info: dict, playing: np.ndarray, rec: dict[str, np.ndarray]) -> None:
+    """Record each episode's first team event and the steps from it to the next capture; a learner drone
+    the event replaced is forgotten by the learner."""
+    changed = info["team_changed"]
+    t = info["episode_length"]
+    hit = changed.any(1)
+    if hit.any():
+        ep = playing[hit]
+        first = rec["event_step"][ep] < 0
+        rec["event_step"][ep[first]] = t[hit][first]
+        env, k = match.changed_learners(changed)
+        forget = getattr(learner, "forget", None)
+        if len(env) and forget is not None:
+            forget(match.seats[env], match.learner_slots[env, k])
+    caught = info["captured_now"].any(1)
+    if caught.any():
+        ep = playing[caught]
+        start = rec["event_step"][ep]
+        new = (start >= 0) & (rec["recovery"][ep] < 0) & (t[caught] > start)
+        rec["recovery"][ep[new]] = t[caught][new] - start[new]
 
 
 _FIELDS = {
@@ -327,25 +380,46 @@ def evaluate(
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
     cross_task: bool = False,
+    protocol: Protocol | str | None = None,
+    num_ctrl: int | None = None,
+    seats: Sequence[int] | None = None,
 ) -> Evaluation:
     """SUC/COL/AST/REW of ``learner`` with ``zoo`` on ``task``, per seed and aggregated.
 
-    A learner trained on another task is refused (ConfigError) unless ``cross_task``.
+    A learner trained on another task is refused (ConfigError) unless ``cross_task``. With a ``protocol``
+    its team events are played and its name labels the result; ``num_ctrl`` and ``seats``: see
+    :func:`run_episodes`.
     """
     import pandas as pd
 
     cfg = load_task(task)
     task_fit(learner, [cfg], cross_task)
+    proto = load_protocol(protocol) if protocol is not None else None
     zoo = (zoo if isinstance(zoo, Zoo) else load_zoo(zoo)).resolve(cfg)
     partners = zoo.policies()
+    plan = proto.plan if proto is not None else None
     records = pd.concat(
-        [run_episodes(learner, cfg, partners, episodes, seed=s, on_progress=on_progress) for s in seeds],
+        [
+            run_episodes(
+                learner,
+                cfg,
+                partners,
+                episodes,
+                s,
+                on_progress=on_progress,
+                events=plan,
+                num_ctrl=num_ctrl,
+                seats=seats,
+            )
+            for s in seeds
+        ],
         ignore_index=True,
     )
     per_seed = pd.DataFrame([{"seed": s, **metrics(g)} for s, g in records.groupby("seed")]).set_index("seed")
     return Evaluation(
         task=cfg.name,
-        zoo=zoo.name,
+        zoo=proto.name if proto is not None else zoo.name,
+        protocol=proto.name if proto is not None else "",
         learner=getattr(learner, "name", "learner"),
         per_seed=per_seed,
         records=records,
@@ -379,8 +453,10 @@ def evaluate_grid(
     seeds: Sequence[int] = (0,),
     on_progress: Callable[[int], None] | None = None,
     cross_task: bool = False,
+    protocol: Protocol | None = None,
 ) -> list[GridCell]:
-    """Evaluate ``learner`` on every task x zoo (row-major: tasks outer, zoos inner).
+    """Evaluate ``learner`` on every task x zoo (row-major: tasks outer, zoos inner), with ``protocol``'s team
+    events when given (its name labels the cells).
 
     A zoo with missing members is not played: its cells list the missing members.
     """
@@ -390,8 +466,17 @@ def evaluate_grid(
     for cfg in cfgs:
         for zoo in (z.resolve(cfg) for z in loaded):
             if zoo.missing:
-                cells.append(GridCell(cfg.name, zoo.name, None, tuple(zoo.missing)))
+                cells.append(GridCell(cfg.name, protocol.name if protocol else zoo.name, None, tuple(zoo.missing)))
             else:
-                result = evaluate(learner, cfg, zoo, episodes, seeds, on_progress=on_progress, cross_task=cross_task)
-                cells.append(GridCell(cfg.name, zoo.name, result))
+                result = evaluate(
+                    learner,
+                    cfg,
+                    zoo,
+                    episodes,
+                    seeds,
+                    on_progress=on_progress,
+                    cross_task=cross_task,
+                    protocol=protocol,
+                )
+                cells.append(GridCell(cfg.name, result.zoo, result))
     return cells
