@@ -135,3 +135,26 @@ def test_without_events_the_step_reports_no_team_change() -> None:
     core.reset()
     info = core.step(np.zeros((2, 4)))[3]
     assert "team_changed" not in info and core.state.ev_kind.shape == (2, 0)
+
+
+def test_training_draws_the_protocol_events_and_forgets_a_replaced_learner_drone() -> None:
+    from atdrone.config import ConfigError
+    from atdrone.envs.events import EventPlan as Plan
+    from atdrone.learn.ppo import ppo_config
+    from atdrone.learn.rollout import RolloutWorker
+    from atdrone.learn.trainer import load_train_config
+
+    arch = ActorCritic.header(NetConfig(entity_dim=8, hidden=8, history=2))
+    plan = Plan((EventSpec("swap", (3, 3), "learners"),))
+    worker = RolloutWorker(TASK, 0, arch, ppo_config({"num_envs": 4}), events=plan)
+    worker.collect(2)
+    seen = worker.memory.fresh.copy()  # type: ignore[attr-defined]
+    assert not seen.any()
+    worker.collect(1)  # the step that brings every episode to step 3: one learner drone each is replaced
+    fresh = worker.memory.fresh  # type: ignore[attr-defined]
+    assert (fresh.sum(1) == 1).all()
+    cfg = load_train_config({"name": "ev", "task": TASK, "protocol": "zoo3+swap"})
+    assert cfg.protocol == "zoo3+swap"
+    with pytest.raises(ConfigError) as err:
+        load_train_config({"name": "ev", "task": TASK, "protocol": "zoo3+nothing"})
+    assert err.value.path == "protocol"

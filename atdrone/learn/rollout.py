@@ -9,7 +9,9 @@ Besides observations, actions and rewards a fragment carries ``extras`` for algo
 that need more (the learners' slots, the partners' member indices and the turns the
 partners actually executed); every finished episode names its partners, and the
 profiles drawn for the episodes started are counted (:attr:`RolloutWorker.drawn`), so
-what was drawn is what is reported.
+what was drawn is what is reported. With team events (``events``, a protocol's plan)
+every episode draws its swaps, drops and joins, and a learner drone an event replaces
+starts with an empty memory.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import torch
 
 from atdrone.config import TaskConfig
 from atdrone.envs.core import DONE_REASONS, TIMEOUT, BatchedPursuit
+from atdrone.envs.events import EventPlan
 from atdrone.learn.ppo import PPOConfig, gae
 from atdrone.models import build_model
 from atdrone.models.networks import global_state, squash_log_prob, training_kernels
@@ -153,8 +156,10 @@ class RolloutWorker:
         num_ctrl: int | None = None,
         sampler: PartnerSampler | None = None,
         num_envs: int | None = None,
+        events: EventPlan | None = None,
     ) -> None:
-        self.core = BatchedPursuit(task, num_envs=ppo.num_envs if num_envs is None else num_envs, seed=seed)
+        B = ppo.num_envs if num_envs is None else num_envs
+        self.core = BatchedPursuit(task, num_envs=B, seed=seed, events=events)
         if num_ctrl is None:
             num_ctrl = self.core.cfg.players.num_ctrl if partners else self.core.num_p
         self.model = build_model(dict(architecture))
@@ -286,6 +291,8 @@ class RolloutWorker:
                     slots, info["actions"], info["dists"], dist.mean.numpy(), dist.stddev.numpy()
                 )
             self.memory.record(self.obs.reshape(B * k, D), self._rows, self._keys, actions.reshape(-1))
+            if "team_changed" in info:  # a new learner drone knows nothing of the episode so far
+                self.memory.forget(*self.match.changed_learners(info["team_changed"]))
             if states is not None:
                 states[t] = state
             if d.any():

@@ -47,6 +47,7 @@ from atdrone.policies.neural import NeuralPolicy
 from atdrone.policies.zoo import PolicyError, load_zoo
 from atdrone.rundir import RunError, check_resume, refuse_existing
 from atdrone.teams.evaluation import metrics, run_episodes
+from atdrone.teams.protocols import load_protocol
 
 log = logging.getLogger(__name__)
 STATE_FILE = "learner_state.safetensors"
@@ -81,6 +82,8 @@ class TrainConfig:
     state (mode mappo always has one); the actor still sees only its own observation.
     stop_at_suc: stop once a periodic evaluation reaches this SUC % (0: off), to train a
     drone of a given skill level (the Zoo 2 drones).
+    protocol: train with the team events of this protocol (configs/protocols/, e.g.
+    zoo3+swap: its events only; the partners stay the mode's) drawn in every episode.
     Bounds (checked by :func:`load_train_config`): name a run name (letters, digits, '.',
     '_', '-'; see :func:`atdrone.config.check_run_name`), seed in [0, 2**32 - 1],
     sizes within :data:`TRAIN_LIMITS`, device auto, cpu or a CUDA device torch sees.
@@ -107,6 +110,7 @@ class TrainConfig:
     stop_at_suc: float = 0.0
     centralised_critic: bool = False
     start_std: float = 0.0
+    protocol: str = field(default="", metadata=OPTIONAL)
 
 
 # upper bounds of a train config's sizes (the paper's runs: 2e6-1e7 env steps, 200 evaluation episodes)
@@ -136,6 +140,11 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
             raise ConfigError("zoo", str(exc)) from None
     if cfg.init_checkpoint:
         _check_init_checkpoint(cfg.init_checkpoint, task.name)
+    if cfg.protocol:
+        try:
+            load_protocol(cfg.protocol)
+        except ConfigError as exc:
+            raise ConfigError("protocol", str(exc)) from None
     return cfg
 
 
@@ -216,7 +225,10 @@ class Trainer:
             if updates == 0
             else int(np.random.SeedSequence([self.cfg.seed, updates]).generate_state(1)[0])
         )
-        return RolloutWorker(self.task, seed, self.model.architecture(), self.ppo, partners=self.partners)
+        events = load_protocol(self.cfg.protocol).plan if self.cfg.protocol else None
+        return RolloutWorker(
+            self.task, seed, self.model.architecture(), self.ppo, partners=self.partners, events=events
+        )
 
     def _start_from(self, checkpoint: str) -> None:
         """Take a checkpoint's weights: the same architecture, or a narrower one widened with zero weights."""
