@@ -5,7 +5,10 @@ selection (validation) zoo, copied into the results folder with a manifest.
 header + tensors, digest-checked when loaded) and ``<task>.json`` its manifest: method,
 task, seed, algorithm, member, the budget it was trained with, the sha256 of the file
 (and of its tensors alone, ``weights_sha256``, which the header carries),
-its metrics on every zoo and what it was chosen on. Only the selection zoo's scores
+its metrics on every zoo and what it was chosen on; as a model card also the PPO setting,
+the zoo version of its task, 95 % intervals over the evaluation episodes (SUC and COL,
+Wilson's) and the commands that reproduce it, written out as ``<task>.md``. A smoke
+test's weights say so (``smoke_test``). Only the selection zoo's scores
 choose (SUC, then REW, then the lower seed), never a test zoo's. The manifest is
 written after the file, so a manifest names a complete file. ``weights:METHOD/TASK``
 (or ``weights:BENCHMARK/METHOD/TASK``) names it wherever a policy is named
@@ -67,7 +70,70 @@ def keep_weights(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> lis
                 "budget": {**best["budget"], "env_steps_planned": cfg.env_steps},
                 "metrics": best["metrics"],
             }
+            manifest.update(card(cfg, method, best))
             text = json.dumps(manifest, indent=2, sort_keys=True)
             atomic_write_bytes(weights_manifest(cfg.results, method, task), text.encode())
+            card_path = weights_manifest(cfg.results, method, task).with_suffix(".md")
+            atomic_write_bytes(card_path, card_text(manifest).encode())
             manifests.append(manifest)
     return manifests
+
+
+def card(cfg: BenchmarkConfig, method: str, best: dict[str, Any]) -> dict[str, Any]:
+    """The model card's fields beyond the manifest: setting, partners, intervals, how to reproduce."""
+    from atdrone.benchmark.cells import EVAL_SEED
+    from atdrone.teams.evaluation import wilson_interval
+
+    n = cfg.eval_episodes
+    seed, task = int(best["cell"]["seed"]), str(best["cell"]["task"])
+    intervals = {
+        zoo: {m: list(wilson_interval(round(values[m] * n / 100.0), n)) for m in ("SUC", "COL") if m in values}
+        for zoo, values in best["metrics"].items()
+    }
+    zoos = ",".join(best["metrics"])
+    return {
+        "smoke_test": bool(getattr(cfg, "smoke_test", False)),
+        "ppo": cfg.experiment.get("ppo", {}),
+        "zoo_version": best.get("zoo_version", ""),
+        "eval_episodes": n,
+        "eval_seed": EVAL_SEED + seed,
+        "metrics_ci95": intervals,
+        "reproduce": {
+            "train": f"atdrone benchmark {cfg.name}  (cell {best['name']})",
+            "evaluate": f"atdrone evaluate --policy weights:{cfg.name}/{method}/{task} --task {task} --zoo ZOO "
+            f"--episodes {n} --seeds {EVAL_SEED + seed}   (ZOO one of {zoos})",
+        },
+    }
+
+
+def card_text(m: dict[str, Any]) -> str:
+    """The model card as Markdown."""
+    lines = [
+        f"# {m['method']} on {m['task']} ({m['benchmark']} benchmark)",
+        "",
+        "**A smoke test: these weights rank nothing.**" if m.get("smoke_test") else "",
+        f"Load it as `weights:{m['method']}/{m['task']}` (or `weights:{m['benchmark']}/{m['method']}/{m['task']}`).",
+        "",
+        f"- member {m['member']} of seed {m['seed']} ({m['algorithm']}), chosen on the {m['selected_on'].get('zoo')} "
+        "zoo among the benchmark's seeds (never on a test zoo)",
+        f"- budget: {m['budget'].get('env_steps', 0):,} env steps "
+        f"(planned {m['budget'].get('env_steps_planned', 0):,})",
+        f"- PPO: {json.dumps(m.get('ppo', {}), sort_keys=True)}",
+        f"- partners: zoo version {m.get('zoo_version') or 'unrecorded'}; file sha256 {m['sha256']}",
+        "",
+        f"Evaluated with {m['eval_episodes']} episodes per zoo (evaluation seed {m['eval_seed']}); "
+        "intervals over the episodes:",
+        "",
+        "| zoo | SUC % [95 % CI] | COL % [95 % CI] | AST | REW |",
+        "|---|---|---|---|---|",
+    ]
+    for zoo, v in m["metrics"].items():
+        ci = m["metrics_ci95"].get(zoo, {})
+
+        def cell(metric: str, v: dict[str, float] = v, ci: dict[str, list[float]] = ci) -> str:
+            low, high = ci.get(metric, [float("nan")] * 2)
+            return f"{v[metric]:.1f} [{low:.1f}, {high:.1f}]"
+
+        lines.append(f"| {zoo} | {cell('SUC')} | {cell('COL')} | {v['AST']:.1f} | {v['REW']:.2f} |")
+    lines += ["", "Reproduce:", "", f"    {m['reproduce']['train']}", f"    {m['reproduce']['evaluate']}", ""]
+    return "\n".join(lines)
