@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import scipy.stats
 
-from atdrone.benchmark import report
+from atdrone.benchmark import report, report_figures
 from atdrone.benchmark.cells import Cell, cells, experiment_document, load_benchmark
 from atdrone.benchmark.report import write_report
 from atdrone.benchmark.weights import keep_weights
@@ -32,13 +32,23 @@ DOC: dict[str, Any] = {
     "eval_episodes": 8,
     "bootstrap_reps": 300,
     "methods": {"sp": {"experiment": "sp_quick"}, "hola": {"experiment": "hola_quick"}},
+    "smoke_test": True,  # HOLA at 1,024 env steps: one generation, allowed in a smoke test only
 }
+
+
+@pytest.fixture(autouse=True)
+def _zoos_unchecked(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The report reads cell records and never plays a partner, so these tests do not need every task's zoo
+    drones on disk (tests/test_missing_zoo.py checks the zoos): the config's zoo check is skipped here."""
+    from atdrone.benchmark import config
+
+    monkeypatch.setattr(config, "_check_zoo", lambda zoo, path, tasks: None)
 
 
 # ------------------------------------------------------------------ the report on made-up records
 def _records(cfg: Any, tmp_path: Path) -> list[dict[str, Any]]:
     """Records as run_cell writes them; every method's checkpoint is a real zoo checkpoint."""
-    spec = next(m for m in load_zoo("zoo2").spec.members if m.kind == "checkpoint")
+    spec = next(m for m in load_zoo("zoo2", "4p2e1o").spec.members if m.kind == "checkpoint")  # a real drone file
     rng = np.random.default_rng(0)
     out = []
     for cell in cells(cfg):
@@ -57,7 +67,7 @@ def _records(cfg: Any, tmp_path: Path) -> list[dict[str, Any]]:
                 algorithm=cell.method, member="m", checkpoint=str(path.relative_to(cfg.folder)), sha256=digest
             )
         budget = {"env_steps": 1024, "learner_samples": 2048, "eval_env_steps": 0, "benchmark_eval_env_steps": 99}
-        record.update(metrics=metrics, budget=budget, timing={"wall_s": 1.0, "cpu_s": 2.0})
+        record.update(metrics=metrics, budget=budget, timing={"wall_s": 1.0, "cpu_s": 2.0}, generations=1)
         out.append(record)
     return out
 
@@ -85,11 +95,11 @@ def test_the_report_holds_table_2_paired_differences_normalised_scores_and_aggre
     assert set(norm.zoo) == {"zoo1", "zoo2"}  # test zoos only
     agg = pd.read_csv(files["aggregate.csv"])
     assert set(agg.score) == {"SUC", "normalised SUC"} and set(agg.statistic) == {"IQM", "mean"}
-    assert (agg.runs == 3).all() and (agg.tasks == 4).all()  # 3 seeds x (2 tasks x 2 test zoos)
+    assert (agg.runs == 3).all() and (agg.tasks == 2).all() and (agg.zoos == 2).all()  # 3 seeds x 2 tasks x 2 zoos
     poi = pd.read_csv(files["improvement.csv"])
     assert poi.iloc[0]["P(method > reference)"] > 0.5  # hola's made-up SUC is 10 points higher
     text = files["report.md"].read_text()
-    for part in ("Table 2", "Paired differences", "Normalised SUC", "Aggregates", "1,024", "CPU-s"):
+    for part in ("Table 2", "Paired differences", "Normalised SUC", "Aggregates (rliable)", "1,024", "CPU-s"):
         assert part in text
     assert files["suc_4p2e5o.png"].read_bytes()[:4] == b"\x89PNG"
     assert "fig3_without_teammate_modelling.png" in files and "fig4_with_teammate_modelling.png" not in files
@@ -201,13 +211,13 @@ def test_the_papers_orderings_are_checked_paired_over_seeds_with_a_verdict_each(
         for zoo, values in r["metrics"].items():
             values["SUC"] = suc(c["method"], c["task"], zoo, c["seed"])
     drawn: dict[str, list[set[str]]] = {}
-    save = report._save
+    save = report_figures._save
 
     def keep_labels(fig: Any, path: Path) -> Path:  # each figure's legend, per panel that has one
         drawn[path.stem] = [{t.get_text() for t in ax.get_legend().get_texts()} for ax in fig.axes if ax.get_legend()]
         return save(fig, path)
 
-    monkeypatch.setattr(report, "_save", keep_labels)
+    monkeypatch.setattr(report_figures, "_save", keep_labels)
     files = write_report(cfg, records)
     lines = {"best response", "floor (random)"}
     assert drawn["fig3_without_teammate_modelling"] == [{"sp", "hola", *lines}]  # the paper's two figures
@@ -235,3 +245,135 @@ def test_the_papers_orderings_are_checked_paired_over_seeds_with_a_verdict_each(
     assert "## The paper's orderings" in text
     assert f"- {br}: 16 comparisons: 15 holds; 0 ahead, undecided; 0 behind, undecided; 1 reversed." in text
     assert "| 4p2e1o | zoo1 | br - hola | 3 | -6.0 +- 0.6 [-8.5, -3.5] | reversed |" in text
+
+
+# ------------------------------------------------------------------ smoke tests, HOLA's generations, extra seeds
+def _hola_update_env_steps(cfg: Any) -> int:
+    from atdrone.learn.ppo import ppo_config
+
+    doc = experiment_document(cfg, Cell("method", "hola", "4p2e1o", 0))
+    ppo = ppo_config(doc.get("ppo", {}), doc.get("preset", "default"))
+    return ppo.num_envs * ppo.rollout_steps
+
+
+def test_a_hola_method_planned_under_three_hypergraph_generations_is_refused(tmp_path: Path) -> None:
+    """At 1,024 env steps HOLA plans one generation (Pi_0 alone): refused naming the method unless the benchmark
+    is a smoke test; at the budget of Pi_0 plus three generations it loads."""
+    doc = {k: v for k, v in DOC.items() if k != "smoke_test"} | {"out_dir": str(tmp_path)}
+    with pytest.raises(ConfigError, match="0 hypergraph generation") as info:
+        load_benchmark(doc)
+    assert info.value.path == "methods.hola"
+    smoke = load_benchmark({**doc, "smoke_test": True})
+    per_update = _hola_update_env_steps(smoke)
+    pi0 = 2 * doc["updates_per_generation"]  # hola_quick trains two self-play seeds in generation 0
+    three = per_update * (pi0 + 3 * doc["updates_per_generation"])
+    cfg = load_benchmark({**doc, "env_steps": three})
+    assert experiment_document(cfg, Cell("method", "hola", "4p2e1o", 0))["generations"] == 4
+    with pytest.raises(ConfigError, match="2 hypergraph generation"):
+        load_benchmark({**doc, "env_steps": three - per_update * doc["updates_per_generation"]})
+
+
+def test_the_smoke_test_report_says_it_ranks_nothing_and_marks_the_short_hola(made_up) -> None:
+    cfg, records = made_up
+    text = write_report(cfg, records)["report.md"].read_text()
+    assert "**A smoke test: it ranks nothing.**" in text
+    assert "**Marked: hola.** hola is planned for 1 generation(s) at 1,024 env steps: 0 hypergraph" in text
+    assert "Marked: sp" not in text
+    plain = load_benchmark({**DOC, "smoke_test": False, "methods": {"sp": {"experiment": "sp_quick"}}})
+    plain_records = [r for r in records if r["cell"]["method"] != "hola"]
+    assert "smoke test" not in write_report(plain, plain_records)["report.md"].read_text()
+
+
+def test_extra_seeds_join_the_pairs_but_not_the_aggregates(tmp_path: Path) -> None:
+    """Seeds 3 and 4 of hola and sp on 4p2e5o: cells of their own, five pairs in the ordering on Zoo 3, and
+    the aggregates over the benchmark's three seeds (every task must have the same runs)."""
+    doc = {
+        **DOC,
+        "zoos": ["zoo1", "zoo3"],
+        "extra_seeds": [{"methods": ["hola", "sp"], "tasks": ["4p2e5o"], "seeds": [3, 4]}],
+        "out_dir": str(tmp_path / "bench"),
+        "results_dir": str(tmp_path / "results"),
+    }
+    cfg = load_benchmark(doc)
+    names = {c.name for c in cells(cfg)}
+    assert {"hola-4p2e5o-s4", "sp-4p2e5o-s3"} <= names and "hola-4p2e1o-s3" not in names
+    assert cfg.digest() != load_benchmark({**doc, "extra_seeds": []}).digest()
+    assert (
+        load_benchmark({**doc, "extra_seeds": []}).digest()
+        == load_benchmark({**DOC, "zoos": ["zoo1", "zoo3"]}).digest()
+    )
+    files = write_report(cfg, _records(cfg, tmp_path))
+    claims = pd.read_csv(files["orderings.csv"])
+    hola = claims[claims.better == "hola"].iloc[0]
+    assert (hola.task, hola.zoo, hola.worse, hola.n) == ("4p2e5o", "zoo3", "sp", 5)
+    assert hola.paper == "REW +12.4, COL -12.0, AST +19.4"  # Table 2, 4p2e5o Zoo 3: HOLA - SP
+    agg = pd.read_csv(files["aggregate.csv"])
+    assert (agg.runs == 3).all()
+
+
+def test_the_paper_side_by_side_sets_ours_with_its_interval_beside_table_2(made_up) -> None:
+    """REW of hola on 4p2e5o Zoo 2 planted at 120, 125, 131 against the paper's 128.45 +- 3.79: the t interval
+    of the mean by hand (2 degrees of freedom); AST with one seed without a success: n 2, 1 degree of freedom."""
+    cfg, records = made_up
+    for r in records:
+        c = r["cell"]
+        if (c["method"], c["task"]) == ("hola", "4p2e5o"):
+            r["metrics"]["zoo2"]["REW"] = [120.0, 125.0, 131.0][c["seed"]]
+            r["metrics"]["zoo2"]["AST"] = [300.0, float("nan"), 310.0][c["seed"]]
+    files = write_report(cfg, records)
+    side = pd.read_csv(files["paper.csv"])
+    assert len(side) == 2 * 2 * 2 * 3  # tasks x zoos x methods of Table 2 x COL, AST, REW
+    rew = side[(side.method == "hola") & (side.task == "4p2e5o") & (side.zoo == "zoo2") & (side.metric == "REW")]
+    row = rew.iloc[0]
+    values = np.array([120.0, 125.0, 131.0])
+    half = scipy.stats.t.ppf(0.975, 2) * values.std(ddof=1) / np.sqrt(3)
+    assert (row.paper_mean, row.paper_std, row.n) == (128.45, 3.79, 3)
+    assert row["mean"] == pytest.approx(values.mean()) and row["std"] == pytest.approx(values.std(ddof=1))
+    assert [row.ci95_low, row.ci95_high] == pytest.approx([values.mean() - half, values.mean() + half])
+    assert row["diff"] == pytest.approx(values.mean() - 128.45) and bool(row.paper_in_interval)
+    ast = side[(side.method == "hola") & (side.task == "4p2e5o") & (side.zoo == "zoo2") & (side.metric == "AST")]
+    half = scipy.stats.t.ppf(0.975, 1) * np.std([300.0, 310.0], ddof=1) / np.sqrt(2)
+    assert ast.iloc[0].n == 2 and ast.iloc[0].ci95_high == pytest.approx(305.0 + half)
+    text = files["report.md"].read_text()
+    assert "## Beside the paper (Table 2)" in text
+    assert "| 4p2e5o | zoo2 | hola | 25.2 +- 3.4 |" in text  # COL: the paper's 25.2 +- 3.35
+
+
+def test_a_bound_within_noise_of_the_floor_normalises_nothing_and_is_marked(made_up) -> None:
+    cfg, records = made_up
+    for r in records:
+        c = r["cell"]
+        if c["kind"] in ("br", "floor") and (c["task"], c["zoo"]) == ("4p2e1o", "zoo1"):
+            r["metrics"]["zoo1"]["SUC"] = 12.5 if c["kind"] == "floor" else [10.0, 15.0, 12.5][c["seed"]]
+    files = write_report(cfg, records)
+    norm = pd.read_csv(files["normalised.csv"])
+    marked = norm[(norm.task == "4p2e1o") & (norm.zoo == "zoo1")]
+    assert not marked.bound_usable.any() and marked.normalised_SUC.isna().all()
+    assert norm[norm.task == "4p2e5o"].bound_usable.all() and norm[norm.task == "4p2e5o"].normalised_SUC.notna().all()
+    text = files["report.md"].read_text()
+    assert "Bounds usable: 3 of 4 (task, zoo)." in text and "| 4p2e1o | zoo1 | 12.5 | 12.5 |" in text
+    agg = pd.read_csv(files["aggregate.csv"])
+    assert (agg[agg.score == "normalised SUC"].tasks == 1).all()  # 4p2e1o has a marked bound: left out
+
+
+def test_the_paper_budget_preset_runs_every_method_at_the_papers_budget() -> None:
+    cfg = load_benchmark("paper_budget")
+    assert cfg.env_steps == 1_048_576 and cfg.eval_episodes == 500 and not cfg.smoke_test
+    assert len(cfg.methods) == 8 and cfg.tasks == ("4p2e1o", "4p2e3o", "4p2e5o", "4p3e5o") and cfg.seeds == (0, 1, 2)
+    assert cfg.best_response and cfg.select_zoo == "validation" and "ppo" in cfg.experiment
+    grid = cells(cfg)
+    method_cells = [c for c in grid if c.kind == "method"]
+    # the cells of every stated ordering have five seeds
+    for _, better, worse, tasks, _ in report.CLAIMS:
+        if better == "br":
+            continue
+        for method in (better, *(worse or ())):
+            for task in tasks or cfg.tasks:
+                assert cfg.seeds_of(method, task) == (0, 1, 2, 3, 4), (method, task)
+    assert len(method_cells) == 8 * 4 * 3 + 2 * (3 * 2 + 3 * 2 + 2 * 2)
+    assert cfg.seeds_of("pbt", "4p2e5o") == (0, 1, 2) and cfg.seeds_of("hola", "4p2e1o") == (0, 1, 2)
+    for method in ("hola", "hola_no_g"):
+        assert experiment_document(cfg, Cell("method", method, "4p2e5o", 0))["generations"] - 1 >= 3
+    docs = [experiment_document(cfg, Cell("method", m, "4p2e1o", 0)) for m in cfg.methods]
+    docs.append(experiment_document(cfg, Cell("br", "br", "4p2e1o", 0, "zoo1")))
+    assert len({json.dumps([d["preset"], d["ppo"]], sort_keys=True) for d in docs}) == 1  # one PPO setting for all

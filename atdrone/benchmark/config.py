@@ -23,6 +23,12 @@ references: the methods the others are compared with in paired differences (defa
 first method). bootstrap_reps / bootstrap_seed: the stratified bootstrap of the aggregates.
 results_dir: the report's folder (default ``benchmarks/results/<name>``). max_parallel: at
 most this many cells at once (0: as many as the cluster's CPUs hold).
+extra_seeds: more seeds for some (method, task) runs, e.g. where a comparison needs them:
+``[{"methods": ["hola", "sp"], "tasks": ["4p2e5o"], "seeds": [3, 4]}]`` (:class:`ExtraSeeds`);
+the aggregates use ``seeds`` only, the per-cell tables and paired differences every seed.
+smoke_test: the benchmark only checks that the grid runs end to end; its report says it ranks
+nothing, and a HOLA method planned for fewer than :data:`MIN_HOLA_GENERATIONS` hypergraph
+generations is marked there instead of refused (:func:`check_hola_generations`).
 """
 
 from __future__ import annotations
@@ -47,6 +53,11 @@ from atdrone.config import (
 from atdrone.policies.zoo import PolicyError, load_zoo
 
 PLACEMENT = ("out_dir", "results_dir", "max_parallel")  # where and how fast, not what: a resume may change them
+LABELS = ("smoke_test",)  # what a report says about the grid, not what runs: outside the digest too
+# HOLA's generation 0 trains Pi_0 alone; every later generation builds and plays the hypergraph G'_t. A run planned
+# for fewer hypergraph generations than this measures little of the method (at one planned generation, none).
+MIN_HOLA_GENERATIONS = 3
+HOLA_ALGORITHMS = ("hola", "hola_no_g")
 
 
 @dataclass(frozen=True)
@@ -58,6 +69,15 @@ class MethodSpec:
     experiment: str
     overrides: dict[str, Any] = field(default_factory=dict)
     pool: str = field(default="", metadata=OPTIONAL)
+
+
+@dataclass(frozen=True)
+class ExtraSeeds:
+    """More seeds for the runs of ``methods`` x ``tasks`` (beside the benchmark's ``seeds``)."""
+
+    methods: tuple[str, ...]
+    tasks: tuple[str, ...]
+    seeds: tuple[int, ...]
 
 
 @dataclass(frozen=True)
@@ -82,6 +102,8 @@ class BenchmarkConfig:
     max_parallel: int = 0
     out_dir: str = "runs/benchmarks"
     results_dir: str = field(default="", metadata=OPTIONAL)
+    extra_seeds: tuple[ExtraSeeds, ...] = ()
+    smoke_test: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """The document form (what ``config.json`` of the benchmark folder keeps)."""
@@ -90,7 +112,9 @@ class BenchmarkConfig:
     def digest(self) -> str:
         """What makes two configs the same benchmark: every key but where its files go, and the partners:
         the zoo manifest's version of each task (a drone retrained is another benchmark, never mixed in)."""
-        doc = {k: v for k, v in self.to_dict().items() if k not in PLACEMENT}
+        doc = {k: v for k, v in self.to_dict().items() if k not in PLACEMENT + LABELS}
+        if not doc["extra_seeds"]:  # a config without them keeps the digest it had before they existed
+            del doc["extra_seeds"]
         doc["zoo_versions"] = self.zoo_versions()
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -113,6 +137,31 @@ class BenchmarkConfig:
     @property
     def reference_methods(self) -> tuple[str, ...]:
         return self.references or (next(iter(self.methods)),)
+
+    def seeds_of(self, method: str, task: str) -> tuple[int, ...]:
+        """The seeds of a method's runs on a task: ``seeds`` and its :class:`ExtraSeeds`, in that order."""
+        extra = [s for e in self.extra_seeds if method in e.methods and task in e.tasks for s in e.seeds]
+        return self.seeds + tuple(s for s in dict.fromkeys(extra) if s not in self.seeds)
+
+
+def check_hola_generations(cfg: BenchmarkConfig, label: str, algorithm: str, generations: int) -> str:
+    """A HOLA method (``hola``, ``hola_no_g``) planned for fewer than :data:`MIN_HOLA_GENERATIONS` hypergraph
+    generations (``generations`` - 1: generation 0 trains Pi_0 alone) is refused, naming ``methods.<label>``;
+    in a smoke test it is allowed and the mark for its report returned. '' for every other method."""
+    hypergraph = generations - 1
+    if algorithm not in HOLA_ALGORITHMS or hypergraph >= MIN_HOLA_GENERATIONS:
+        return ""
+    why = (
+        f"{label} is planned for {generations} generation(s) at {cfg.env_steps:,} env steps: "
+        f"{hypergraph} hypergraph generation(s) after Pi_0, fewer than {MIN_HOLA_GENERATIONS}"
+    )
+    if cfg.smoke_test:
+        return why
+    raise ConfigError(
+        f"methods.{label}",
+        f"{why}; raise env_steps or lower updates_per_generation (or mark the benchmark smoke_test: it then ranks "
+        "nothing)",
+    )
 
 
 def method_document(spec: MethodSpec) -> dict[str, Any]:
@@ -186,6 +235,18 @@ def _check(cfg: BenchmarkConfig) -> None:
     for ref in cfg.references:
         if ref not in cfg.methods:
             raise ConfigError("references", f"{ref!r} is not a method (methods: {', '.join(cfg.methods)})")
+    for i, extra in enumerate(cfg.extra_seeds):
+        where = f"extra_seeds[{i}]"
+        for j, method in enumerate(extra.methods):
+            if method not in cfg.methods:
+                raise ConfigError(f"{where}.methods[{j}]", f"{method!r} is not a method of the benchmark")
+        for j, task in enumerate(extra.tasks):
+            if task not in cfg.tasks:
+                raise ConfigError(f"{where}.tasks[{j}]", f"{task!r} is not a task of the benchmark")
+        if not extra.seeds or not extra.methods or not extra.tasks:
+            raise ConfigError(where, "name at least one method, task and seed")
+        for j, seed in enumerate(extra.seeds):
+            check_seed(seed, f"{where}.seeds[{j}]")
     for key in ("name", "task", "seed", "algorithm", "out_dir", "generations"):
         if key in cfg.experiment:
             raise ConfigError(f"experiment.{key}", "set by the benchmark for every cell")
