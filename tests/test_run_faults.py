@@ -52,5 +52,18 @@ def test_a_fault_raised_inside_ray_is_one_line_of_its_kind(cause, code, line):
         assert "\x1b" not in fault.line and "\n" not in fault.line
 
 
+def test_the_error_raised_is_the_line_not_the_one_it_replaced():
+    from atdrone.registry import RegistryError
+
+    try:
+        try:
+            raise RegistryError("/runs/x/registry.db is not a sqlite database")
+        except RegistryError as exc:
+            raise RunError(f"{exc}; the run cannot be resumed") from None
+    except RunError as exc:
+        fault = explain(exc)
+    assert fault is not None and fault.line == "/runs/x/registry.db is not a sqlite database; the run cannot be resumed"
+
+
 def test_a_bug_is_not_a_fault():
     assert explain(_from_ray(KeyError("cf7"))) is None

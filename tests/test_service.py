@@ -603,8 +603,8 @@ def test_runs_of_one_name_never_mix_one_driver_holds_a_run_and_a_resume_checks_w
     """With one registry folder for every run (the cluster's recipe): while run A's driver runs, a second driver
     on A is refused in one line naming the holder; a new run of the same name in another out dir gets a registry
     of its own and leaves A's byte-identical. Then, before Ray starts and in one line (exit 2), leaving A as it
-    was: a member checkpoint swapped for another valid one, a registry file of the other run and a state file
-    whose generation count is -3 are refused."""
+    was: a member checkpoint swapped for another valid one, a registry file of the other run, a file that is no
+    registry and a state file whose generation count is -3 are refused."""
     import os
     import signal
     import threading
@@ -676,6 +676,12 @@ def test_runs_of_one_name_never_mix_one_driver_holds_a_run_and_a_resume_checks_w
         rf"atdrone train: error: {re.escape(str(a_registry))} is the registry of same \(run id \w+\), not of this "
         r"run \(run id \w+\)",
         line,
+    ), line
+    a_registry.write_bytes(b"not a registry at all")
+    code, line = train("--resume", "--generations", "3")
+    assert code == 2 and line == (
+        f"atdrone train: error: {a_registry} is not a sqlite database, so not an atdrone registry; the run cannot be "
+        "resumed"
     ), line
     shutil.copyfile(tmp_path / "a.db", a_registry)
     edited = json.loads(state)

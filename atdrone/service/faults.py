@@ -43,7 +43,10 @@ def causes(exc: BaseException) -> list[BaseException]:
         seen.add(id(current))
         chain.append(current)
         wrapped = getattr(current, "cause", None)
-        current = wrapped if isinstance(wrapped, BaseException) else (current.__cause__ or current.__context__)
+        if isinstance(wrapped, BaseException):
+            current = wrapped
+        else:  # what ``raise ... from None`` hid stays hidden: the error raised says it better
+            current = current.__cause__ or (None if current.__suppress_context__ else current.__context__)
     return chain
 
 
