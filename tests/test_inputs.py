@@ -430,3 +430,9 @@ def test_weights_names_and_model_version_tags_never_reach_outside_their_folders(
     shutil.copyfile(planted, user_cache("x.pt"))
     with pytest.raises(PolicyError, match="outside the model cache"):
         resolve(f"models:/atdrone-tags/{version}", tracking_uri=uri)
+
+
+def test_a_number_of_5000_digits_in_a_config_is_refused_in_one_line(tmp_path, capsys):
+    config = tmp_path / "big.json"
+    config.write_text('{"name": "big", "algorithm": "sp", "task": "4p2e1o", "seed": ' + "9" * 5000 + "}")
+    _one_line_error(capsys, ["train", str(config)], "is not a config: Exceeds the limit (4300 digits)")
