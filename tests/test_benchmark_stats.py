@@ -61,6 +61,17 @@ def test_probability_of_improvement_counts_run_pairs_per_task_and_zoo_ties_half(
     assert stats.probability_of_improvement(x, y) == pytest.approx(np.mean(per_cell))
 
 
+def test_the_bootstraps_pair_share_equals_rliables_probability_of_improvement() -> None:
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        runs_x, runs_y, tasks, zoos = rng.integers(2, 6, 4)
+        x = rng.integers(0, 4, (runs_x, tasks, zoos)).astype(float)  # few values: many ties
+        y = rng.integers(0, 4, (runs_y, tasks, zoos)).astype(float)
+        assert stats.pair_share(x, y) == pytest.approx(stats.probability_of_improvement(x, y))
+    same = rng.random((3, 2, 2))
+    assert stats.pair_share(same, same) == stats.probability_of_improvement(same, same) == 0.5
+
+
 def test_a_bootstrap_resample_draws_runs_per_task_and_keeps_each_run_whole() -> None:
     runs, tasks, zoos = 5, 3, 4
     x = np.arange(runs * tasks * zoos, dtype=np.float64).reshape(runs, tasks, zoos)
@@ -125,7 +136,7 @@ def test_the_probability_of_improvement_interval_resamples_whole_runs() -> None:
     try:
         np.random.seed(4)  # rliable 1.2.0 draws from the global state
         split = library.StratifiedIndependentBootstrap(x, y).conf_int(
-            lambda a, b: np.array([stats.probability_of_improvement(a, b)]), reps=600, method="percentile"
+            lambda a, b: np.array([stats.pair_share(a, b)]), reps=600, method="percentile"
         )
     finally:
         np.random.set_state(state)
