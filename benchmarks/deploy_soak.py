@@ -6,10 +6,11 @@ packets, every threshold), with ``--busy`` processes spinning on the CPU beside 
 whole time. Per flight it reads the log the job wrote: episodes flown, how each drone
 ended (the job's word) and what the simulated firmware saw (``fleet.json``: every impact
 with the floor and what cut the motors). A drone counts as **cut in the air** when it met
-the floor faster than 0.5 m/s (a motor cut above the floor; a landing meets it at
-0.1-0.2 m/s). Writes JSON: flights, flights that flew every episode, drones cut in the
-air (goal: 0), exits non-zero, per flight the details; the load average before and
-after, the command, the date.
+the floor faster than 0.5 m/s with its motors off (it fell), and as a **hard landing**
+when it met it that fast with its motors on (a landing meets it at 0.1-0.2 m/s). Writes
+JSON: flights, flights that flew every episode, drones cut in the air (goal: 0), hard
+landings, exits non-zero, per flight the details; the load average before and after, the
+command, the date.
 
 Usage: python benchmarks/deploy_soak.py [--flights 20] [--busy 2] [--out benchmarks/results/deploy_soak.json]
 """
@@ -46,6 +47,24 @@ def config_path(work: Path) -> Path:
     return CONFIG
 
 
+def from_log(log: Path) -> dict[str, Any]:
+    """What one flight's log directory says (meta.json, fleet.json)."""
+    meta = json.loads((log / "meta.json").read_text())
+    fleet = json.loads((log / "fleet.json").read_text()) if (log / "fleet.json").is_file() else {}
+    impacts = {n: [(s, on) for _, s, on in v["impacts"]] for n, v in fleet.items()}
+    return {
+        "log_dir": log.name,
+        "episodes_flown": int(meta.get("episodes_flown", 0)),
+        "ended_early": str(meta.get("ended_early", "")),
+        "endings": meta.get("endings", {}),
+        "max_impact": {n: max((s for s, _ in v), default=0.0) for n, v in impacts.items()},
+        "cut_in_the_air": sorted(n for n, v in impacts.items() if any(s >= IMPACT and not on for s, on in v)),
+        "hard_landing": sorted(n for n, v in impacts.items() if any(s >= IMPACT and on for s, on in v)),
+        "stopped_by": {n: sorted({w for _, w in v["history"]}) for n, v in fleet.items() if v["history"]},
+        "overruns": int(meta.get("overruns", 0)),
+    }
+
+
 def fly_once(config: Path, out: Path, episodes: int, timeout: float) -> dict[str, Any]:
     """One armed flight through the CLI; what its log says."""
     before = set(out.iterdir()) if out.exists() else set()
@@ -59,18 +78,7 @@ def fly_once(config: Path, out: Path, episodes: int, timeout: float) -> dict[str
     if len(logs) != 1:
         row["error"] = f"expected one new log directory, found {len(logs)}"
         return row
-    meta = json.loads((logs[0] / "meta.json").read_text())
-    fleet = json.loads((logs[0] / "fleet.json").read_text()) if (logs[0] / "fleet.json").is_file() else {}
-    impacts = {n: max((s for _, s, _ in v["impacts"]), default=0.0) for n, v in fleet.items()}
-    row.update(
-        episodes_flown=int(meta.get("episodes_flown", 0)),
-        ended_early=str(meta.get("ended_early", "")),
-        endings=meta.get("endings", {}),
-        max_impact=impacts,
-        cut_in_the_air=sorted(n for n, s in impacts.items() if s >= IMPACT),
-        stopped_by={n: sorted({w for _, w in v["history"]}) for n, v in fleet.items() if v["history"]},
-        overruns=int(meta.get("overruns", 0)),
-    )
+    row.update(from_log(logs[0]))
     return row
 
 
@@ -107,6 +115,7 @@ def main() -> None:
         "flights": len(rows),
         "flew_every_episode": sum(r.get("episodes_flown", 0) == args.episodes for r in rows),
         "drones_cut_in_the_air": sum(len(r.get("cut_in_the_air", [])) for r in rows),
+        "hard_landings": sum(len(r.get("hard_landing", [])) for r in rows),
         "drones_not_landed": sum(sum(e != "landed" for e in r.get("endings", {}).values()) for r in rows),
         "exit_nonzero": sum(r["exit"] != 0 for r in rows),
         "wall_s_median": sorted(r["wall_s"] for r in rows)[len(rows) // 2] if rows else None,
