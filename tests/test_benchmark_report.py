@@ -99,6 +99,11 @@ def test_the_report_holds_table_2_paired_differences_normalised_scores_and_aggre
     poi = pd.read_csv(files["improvement.csv"])
     assert poi.iloc[0]["P(method > reference)"] > 0.5  # hola's made-up SUC is 10 points higher
     text = files["report.md"].read_text()
+    n = len(records)  # every made-up record: 1,024 env steps, 99 evaluation env steps, 2 CPU-s, 1 s of wall time
+    assert (
+        f"In all: {n} cells, {1024 * n:,} training env steps, {99 * n:,} evaluation env steps, {2 * n} CPU-s, " in text
+    )
+    assert f"{n} s of cell wall time" in text
     for part in ("Table 2", "Paired differences", "Normalised SUC", "Aggregates (rliable)", "1,024", "CPU-s"):
         assert part in text
     assert files["suc_4p2e5o.png"].read_bytes()[:4] == b"\x89PNG"

@@ -218,18 +218,19 @@ def hola_marks(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dict[
 
 
 def budget(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """The budget per method (or bound) and task, mean over its runs (CPU-seconds too); every cell's timing."""
+    """The budget per method (or bound) and task, mean over its runs (CPU- and wall seconds too); every cell's
+    timing."""
     rows, timing = [], []
     for rec in records:
         cell, spent = rec["cell"], rec.get("timing", {})
         row = {"method": cell["method"], "task": cell["task"], **{k: rec["budget"].get(k, 0) for k in BUDGET_KEYS}}
-        rows.append({**row, "cpu_s": spent.get("cpu_s", float("nan"))})
+        rows.append({**row, "cpu_s": spent.get("cpu_s", float("nan")), "wall_s": spent.get("wall_s", float("nan"))})
         timing.append({"cell": rec["name"], **spent})
     rank = {m: i for i, m in enumerate(order(cfg))}
     table = (
         pd.DataFrame(rows)
         .groupby(["method", "task"], sort=False)
-        .agg(runs=("env_steps", "size"), **{k: (k, "mean") for k in (*BUDGET_KEYS, "cpu_s")})
+        .agg(runs=("env_steps", "size"), **{k: (k, "mean") for k in (*BUDGET_KEYS, "cpu_s", "wall_s")})
         .reset_index()
     )
     table = table.assign(_order=table["method"].map(rank)).sort_values(["_order", "task"], kind="stable")

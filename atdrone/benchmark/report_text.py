@@ -86,17 +86,25 @@ def _header(cfg: BenchmarkConfig, t: Tables) -> list[str]:
         "for every method of a seed. " + _ppo_line(cfg) + " The budgets spent, per method and task (mean over runs):",
         "",
         "| method | task | runs | env steps | learner samples | eval env steps (training) | "
-        "eval env steps (benchmark) | CPU-s |",
-        "|---|---|---|---|---|---|---|---|",
+        "eval env steps (benchmark) | CPU-s | wall-s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for _, b in t.spent.iterrows():
         counts = " | ".join(f"{b[k]:,.0f}" for k in BUDGET_KEYS)
-        lines.append(f"| {b['method']} | {b['task']} | {b['runs']} | {counts} | {b['cpu_s']:,.0f} |")
+        lines.append(
+            f"| {b['method']} | {b['task']} | {b['runs']} | {counts} | {b['cpu_s']:,.0f} | {b['wall_s']:,.0f} |"
+        )
+    total = {k: float((t.spent[k] * t.spent["runs"]).sum()) for k in (*BUDGET_KEYS, "cpu_s", "wall_s")}
     lines += [
         "",
+        f"In all: {int(t.spent['runs'].sum()):,} cells, {total['env_steps']:,.0f} training env steps, "
+        f"{total['eval_env_steps'] + total['benchmark_eval_env_steps']:,.0f} evaluation env steps, "
+        f"{total['cpu_s']:,.0f} CPU-s, {total['wall_s']:,.0f} s of cell wall time (cells run side by side: the "
+        "job's own wall time is shorter).",
+        "",
         "CPU-s: the rollout workers' reserved CPU-seconds (wall time x workers) plus the CPU time of the cell's "
-        "driver and evaluation, of the last attempt of each cell (timing.csv); every other number is "
-        "reproducible.",
+        "driver and evaluation; CPU-s and wall-s are of the last attempt of each cell (timing.csv); every other "
+        "number is reproducible.",
     ]
     return lines
 
