@@ -158,7 +158,10 @@ def main() -> int:
         while True:
             with lock:
                 pick = None
-                for item in todo:
+                for item in list(todo):
+                    if destination(*item).is_file():  # made meanwhile (another invocation)
+                        todo.remove(item)
+                        continue
                     r = ready(*item)
                     if r is not None:
                         pick = (item, r)
