@@ -10,6 +10,12 @@ With ``--reference DIR`` (a checkout of another commit, e.g. ``git worktree add 
 MPE2 simple_tag in the same rounds, and prints the ratios this tree / reference (issue 26:
 >= 1.3x) and this tree / MPE2.
 Usage: python benchmarks/env_throughput.py --reference DIR [--rounds 3] [--tasks ...] [--num-envs 256 4096]
+
+With ``--fixed-steps N`` it steps BatchedPursuit N times (one ``--num-envs`` size,
+``--task``), with the team events of ``--protocol`` when given, and prints the rate: a
+fixed amount of work for timing whole processes against each other (``farm-bench --vs``),
+e.g. this tree with one event per episode against this tree without, or against a
+checkout of the commit before (PYTHONPATH=DIR).
 """
 
 from __future__ import annotations
@@ -40,6 +46,30 @@ def _rate(step: Callable[[int], int], seconds: float) -> float:
         done += step(i)
         i += 1
     return done / elapsed
+
+
+def fixed_steps(task: str, num_envs: int, steps: int, protocol: str = "") -> dict[str, Any]:
+    """Step ``steps`` times (with ``protocol``'s team events): the rate and how many events happened."""
+    from atdrone.envs import BatchedPursuit
+
+    kwargs: dict[str, Any] = {}
+    if protocol:
+        from atdrone.teams.protocols import load_protocol
+
+        kwargs["events"] = load_protocol(protocol).plan
+    env = BatchedPursuit(task, num_envs=num_envs, seed=0, **kwargs)
+    env.reset()
+    rng = np.random.default_rng(0)
+    actions = [rng.uniform(-0.3, 0.3, (num_envs, env.num_p)) for _ in range(16)]
+    changes = episodes = 0
+    start = time.perf_counter()
+    for i in range(steps):
+        _, _, done, info = env.step(actions[i % 16])
+        episodes += int(done.sum())
+        if "team_changed" in info:
+            changes += int(info["team_changed"].sum())
+    elapsed = time.perf_counter() - start
+    return {"env_steps_per_s": round(num_envs * steps / elapsed, 1), "episodes_ended": episodes, "events": changes}
 
 
 def batched(task: str, num_envs: int, seconds: float) -> float:
@@ -171,8 +201,15 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per tree with --reference")
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), help="the tasks measured with --reference")
     parser.add_argument("--batched-only", action="store_true", help=argparse.SUPPRESS)  # one tree's round
+    parser.add_argument("--fixed-steps", type=int, default=0, help="step this many times and print the rate")
+    parser.add_argument("--protocol", default="", help="with --fixed-steps: the team events of this protocol")
     args = parser.parse_args()
     machine = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()}
+    if args.fixed_steps:
+        num_envs = (args.num_envs or [4096])[0]
+        rate = fixed_steps(args.task, num_envs, args.fixed_steps, args.protocol)
+        print(json.dumps({"task": args.task, "num_envs": num_envs, "protocol": args.protocol, **rate}))
+        return
     if args.batched_only:
         import atdrone
 

@@ -145,7 +145,7 @@ def test_training_draws_the_protocol_events_and_forgets_a_replaced_learner_drone
     from atdrone.learn.trainer import load_train_config
 
     arch = ActorCritic.header(NetConfig(entity_dim=8, hidden=8, history=2))
-    plan = Plan((EventSpec("swap", (3, 3), "learners"),))
+    plan = Plan((EventSpec("swap", (3, 3)),))  # partners: in self-play, any learner drone
     worker = RolloutWorker(TASK, 0, arch, ppo_config({"num_envs": 4}), events=plan)
     worker.collect(2)
     seen = worker.memory.fresh.copy()  # type: ignore[attr-defined]

@@ -458,7 +458,7 @@ class BatchedPursuit:
             judged.hit_obstacle,
             judged.collided,
         )
-        p_obst: tuple[np.ndarray, np.ndarray] | None = judged.obstacles
+        p_obst = judged.obstacles
         any_collision = collided.any(-1)
 
         # Shared reward.
@@ -497,11 +497,9 @@ class BatchedPursuit:
             ev_slot=s.ev_slot,
             ev_pick=s.ev_pick,
         )
-        changed = None
-        if self.events is not None:
-            changed = ev_.happen(self.state, ~done, self.cfg, self._evader_distances)
-            if changed.any():
-                p_obst = None  # a drone moved by an event: its nearest obstacle is worked out again
+        change = ev_.happen(self.state, ~done, self.cfg, self._evader_distances) if self.events else None
+        if change is not None and change.joined.any():  # a joined drone's nearest obstacle is worked out anew
+            p_obst = ev_.refresh_obstacles(p_obst, change.joined, self.state.pos[:, :P], self.geometry)
         obs = self.observe(obstacles=p_obst)
         info: dict[str, Any] = {
             "done_reason": reason,
@@ -515,8 +513,8 @@ class BatchedPursuit:
             "captured_now": newly,
             "final_obs": obs.copy(),
         }
-        if changed is not None:
-            info["team_changed"] = changed  # (B, P) slots whose drone was swapped, dropped or joined this step
+        if self.events is not None:  # (B, P) the slots whose drone was swapped, dropped or joined this step
+            info["team_changed"] = change.changed if change is not None else np.zeros((self.num_envs, P), dtype=bool)
         if done.any():
             self.final_state = self.state.copy()
             obs[done] = self.observe(self._reset_envs(np.flatnonzero(done)))

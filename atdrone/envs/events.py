@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from atdrone.envs.geometry import Geometry, nearest_obstacle
 from atdrone.envs.streams import EVENT_DRAWS, RowStream, fold
 
 if TYPE_CHECKING:
@@ -118,7 +119,8 @@ def bind_slots(plan: EventPlan, pick: np.ndarray, learner: np.ndarray) -> np.nda
     """Slots (n, K) of the events of episodes whose learners fill ``learner`` (n, P) bool; -1: none eligible.
 
     Event k hits the floor(pick * m)-th of its m eligible slots (in slot order); a join the slot of the drop
-    before it.
+    before it. In a team without partner slots (self-play) each drone is the others' partner: "partners"
+    events hit any slot.
     """
     n = len(learner)
     slots = np.full((n, len(plan)), -1, np.int64)
@@ -126,7 +128,8 @@ def bind_slots(plan: EventPlan, pick: np.ndarray, learner: np.ndarray) -> np.nda
         if ev.kind == "join":
             slots[:, k] = slots[:, k - 1]
             continue
-        eligible = {"partners": ~learner, "learners": learner, "any": np.ones_like(learner)}[ev.slots]
+        partners = ~learner | ~(~learner).any(1, keepdims=True)  # no partner slot (self-play): any slot
+        eligible = {"partners": partners, "learners": learner, "any": np.ones_like(learner)}[ev.slots]
         m = eligible.sum(1)
         nth = np.minimum((pick[:, k] * m).astype(np.int64), np.maximum(m - 1, 0))
         rank = np.cumsum(eligible, 1) - 1  # each eligible slot's place among them
@@ -166,31 +169,31 @@ def apply(
     kind: np.ndarray,
     slot: np.ndarray,
     present: np.ndarray,
-    pos: np.ndarray,
-    heading: np.ndarray,
+    pos_p: np.ndarray,
+    heading_p: np.ndarray,
     keys: np.ndarray,
     t: np.ndarray,
     cfg: TaskConfig,
 ) -> tuple[np.ndarray, TeamChange]:
-    """Apply the events ``fire`` (B, K) of kinds and slots (B, K): new ``present`` (B, P); ``pos`` (B, N, 2)
-    and ``heading`` (B, N) are changed in place (a drop parks its drone, a join spawns one).
+    """Apply the events ``fire`` (n, K) of kinds and slots (n, K) to n rows: their new ``present`` (n, P);
+    the pursuers' ``pos_p`` (n, P, 2) and ``heading_p`` (n, P) are changed in place (a drop parks its drone,
+    a join spawns one).
 
     A swap or drop hits a slot that holds a drone, a join one that does not. A joining drone spawns as
     at an episode's start (x = U(region.x) + x_step * slot, y = U(region.y), heading +y), redrawn while it
     would start closer than collision_distance to a present pursuer; the draws come from the episode's
-    key (``keys`` (B,)) and step ``t`` (B,).
+    key (``keys`` (n,)) and step ``t`` (n,).
     """
     P = present.shape[1]
-    hit = fire[:, :, None] & (slot[:, :, None] == np.arange(P))  # (B, K, P)
+    hit = fire[:, :, None] & (slot[:, :, None] == np.arange(P))  # (n, K, P)
     of = lambda code: (hit & (kind == code)[:, :, None]).any(1)
     change = TeamChange(swapped=of(SWAP) & present, dropped=of(DROP) & present, joined=of(JOIN) & ~present)
     now = (present & ~change.dropped) | change.joined
     if change.dropped.any():
-        pos[:, :P] = np.where(change.dropped[..., None], parked(P), pos[:, :P])
-    rows = np.flatnonzero(change.joined.any(1))
-    if len(rows):
-        pos[rows, :P] = _spawn_joiners(pos[rows, :P], change.joined[rows], now[rows], keys[rows], t[rows], cfg)
-        heading[rows, :P] = np.where(change.joined[rows], np.pi / 2, heading[rows, :P])
+        pos_p[:] = np.where(change.dropped[..., None], parked(P), pos_p)
+    if change.joined.any():
+        pos_p[:] = _spawn_joiners(pos_p, change.joined, now, keys, t, cfg)
+        heading_p[:] = np.where(change.joined, np.pi / 2, heading_p)
     return now, change
 
 
@@ -226,19 +229,41 @@ def _spawn_joiners(
 
 def happen(
     state: PursuitState, running: np.ndarray, cfg: TaskConfig, distances: Callable[[np.ndarray], np.ndarray]
-) -> np.ndarray:
-    """Apply to ``state`` (in place, a step's new state) the events due now in the ``running`` (B,) episodes;
-    returns (B, P) the slots they changed. The approach reward of a changed team starts from its new distances
-    (``distances``: positions (n, N, 2) -> nearest-pursuer distance of each evader (n, E))."""
+) -> TeamChange | None:
+    """Apply to ``state`` (in place, a step's new state) the events due now in the ``running`` (B,) episodes,
+    worked out on their rows only; what they changed (each (B, P)), None when nothing was due. The approach
+    reward of a changed team starts from its new distances (``distances``: positions (n, N, 2) ->
+    nearest-pursuer distance of each evader (n, E))."""
     fire = due(state.t, state.ev_step, state.ev_slot, running)
-    if not fire.any():
-        return np.zeros(state.present.shape, dtype=bool)
+    rows = np.flatnonzero(fire.any(1))
+    if not len(rows):
+        return None
     s = state
-    s.present, change = apply(fire, s.ev_kind, s.ev_slot, s.present, s.pos, s.heading, s.key, s.t, cfg)
-    rows = np.flatnonzero(change.changed.any(1))
-    if len(rows):
-        s.prev_dist[rows] = np.where(s.captured[rows], 0.0, distances(s.pos[rows]))
-    return change.changed
+    P = s.present.shape[1]
+    pos_p, heading_p = s.pos[rows, :P], s.heading[rows, :P]
+    now, change = apply(
+        fire[rows], s.ev_kind[rows], s.ev_slot[rows], s.present[rows], pos_p, heading_p, s.key[rows], s.t[rows], cfg
+    )
+    s.present = s.present.copy()  # the previous state may share it
+    s.present[rows], s.pos[rows, :P], s.heading[rows, :P] = now, pos_p, heading_p
+    moved = rows[(change.dropped | change.joined).any(1)]  # a swap moves no drone
+    if len(moved):
+        s.prev_dist[moved] = np.where(s.captured[moved], 0.0, distances(s.pos[moved]))
+    full = {k: np.zeros(s.present.shape, dtype=bool) for k in ("swapped", "dropped", "joined")}
+    for k, v in full.items():
+        v[rows] = getattr(change, k)
+    return TeamChange(**full)
+
+
+def refresh_obstacles(
+    obstacles: tuple[np.ndarray, np.ndarray], joined: np.ndarray, pos_p: np.ndarray, geometry: Geometry
+) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest-obstacle distance (B, P) and normal (B, P, 2) of the pursuers at ``pos_p`` (B, P, 2), worked
+    out anew in the rows where a drone ``joined`` (B, P)."""
+    rows = np.flatnonzero(joined.any(1))
+    dist, normal = obstacles[0].copy(), obstacles[1].copy()
+    dist[rows], normal[rows] = nearest_obstacle(pos_p[rows], geometry)
+    return dist, normal
 
 
 @cache

@@ -18,7 +18,8 @@ policies keep seeing every remaining drone under its first row number (its seat)
 their per-episode memory needs no moving.
 
 With team events in the core (:mod:`atdrone.envs.events`) the Match tells the core which
-slots are the learners' (events hit partner slots by default), and when a swap or join
+slots are the learners' (events hit partner slots by default; in self-play, where the
+learners fill every slot, each is the others' partner), and when a swap or join
 puts a new drone in a partner slot it draws the member that flies it (another member of
 the partner set, from the episode's key) and has every partner policy forget that slot's
 drone (:meth:`forget`); :meth:`changed_learners` names the learner drones to forget.
