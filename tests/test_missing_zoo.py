@@ -58,7 +58,9 @@ def test_evaluate_all_zoos_plays_the_complete_one_and_skips_the_incomplete_one_s
     (table, JSON report) and a warning names the missing member."""
     ghosts, load = _ghosts(tmp_path), zoo_module.load_zoo
     monkeypatch.setattr(zoo_module, "ZOO_NAMES", ("zoo1", "ghosts"))  # "all": zoo1 and the incomplete zoo
-    monkeypatch.setattr(zoo_module, "load_zoo", lambda name, task=None: load(ghosts if name == "ghosts" else name, task))
+    monkeypatch.setattr(
+        zoo_module, "load_zoo", lambda name, task=None: load(ghosts if name == "ghosts" else name, task)
+    )
     out = tmp_path / "out"
     args = ["--policy", "greedy", "--task", str(_short_task(tmp_path)), "--zoo", "all", "--episodes", "3"]
     if entry == "atdrone evaluate":

@@ -262,7 +262,8 @@ def test_a_greedy_team_captures_as_often_as_measured(task: str):
 
 def test_evaluation_is_deterministic_given_a_seed():
     task = short_horizon("4p2e5o", 150)
-    first = evaluate(VicsekPolicy(), task, "zoo3" if not load_zoo("zoo3", task).missing else "zoo1", episodes=40, seeds=(3,))
+    zoo = "zoo3" if not load_zoo("zoo3", task).missing else "zoo1"
+    first = evaluate(VicsekPolicy(), task, zoo, episodes=40, seeds=(3,))
     second = evaluate(VicsekPolicy(), task, first.zoo, episodes=40, seeds=(3,))
     pd.testing.assert_frame_equal(first.records, second.records)
     other = evaluate(VicsekPolicy(), task, first.zoo, episodes=40, seeds=(4,))

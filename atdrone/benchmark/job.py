@@ -110,10 +110,9 @@ def run_benchmark(
             _write_json(state_path, {"mlflow_run_id": run_id})
         tracker.log_params({"benchmark": cfg.to_dict()})
         records = _run_cells(cfg, uri, progress)
+        from atdrone.benchmark.bounds import bounds_from_records, write_bounds
         from atdrone.benchmark.report import table2, write_report
         from atdrone.benchmark.weights import keep_weights
-
-        from atdrone.benchmark.bounds import bounds_from_records, write_bounds
 
         files = write_report(cfg, records)
         # the bounds of the normalised scores, with the zoo version they were measured with
