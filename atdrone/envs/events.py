@@ -122,11 +122,15 @@ def bind_slots(plan: EventPlan, pick: np.ndarray, learner: np.ndarray) -> np.nda
     before it. In a team without partner slots (self-play) each drone is the others' partner: "partners"
     events hit any slot.
     """
-    n = len(learner)
+    n, P = learner.shape
     slots = np.full((n, len(plan)), -1, np.int64)
+    anyone = not learner.any()  # no learner slot known (the core alone): every event may hit every slot
     for k, ev in enumerate(plan.events):
         if ev.kind == "join":
             slots[:, k] = slots[:, k - 1]
+            continue
+        if anyone and ev.slots != "learners":
+            slots[:, k] = np.minimum((pick[:, k] * P).astype(np.int64), P - 1)
             continue
         partners = ~learner | ~(~learner).any(1, keepdims=True)  # no partner slot (self-play): any slot
         eligible = {"partners": partners, "learners": learner, "any": np.ones_like(learner)}[ev.slots]
@@ -234,15 +238,19 @@ def happen(
     worked out on their rows only; what they changed (each (B, P)), None when nothing was due. The approach
     reward of a changed team starts from its new distances (``distances``: positions (n, N, 2) ->
     nearest-pursuer distance of each evader (n, E))."""
-    fire = due(state.t, state.ev_step, state.ev_slot, running)
-    rows = np.flatnonzero(fire.any(1))
-    if not len(rows):
+    at = state.ev_step == state.t[:, None]
+    if not at.any():
         return None
     s = state
+    rows = np.flatnonzero(at.any(1))
+    fire = due(s.t[rows], s.ev_step[rows], s.ev_slot[rows], running[rows])
+    rows, fire = rows[fire.any(1)], fire[fire.any(1)]
+    if not len(rows):
+        return None
     P = s.present.shape[1]
     pos_p, heading_p = s.pos[rows, :P], s.heading[rows, :P]
     now, change = apply(
-        fire[rows], s.ev_kind[rows], s.ev_slot[rows], s.present[rows], pos_p, heading_p, s.key[rows], s.t[rows], cfg
+        fire, s.ev_kind[rows], s.ev_slot[rows], s.present[rows], pos_p, heading_p, s.key[rows], s.t[rows], cfg
     )
     s.present = s.present.copy()  # the previous state may share it
     s.present[rows], s.pos[rows, :P], s.heading[rows, :P] = now, pos_p, heading_p
