@@ -69,8 +69,8 @@ from typing import Any
 
 import numpy as np
 
+import atdrone.envs.events as ev_
 from atdrone.config import TaskConfig, load_task
-from atdrone.envs import events as ev_
 from atdrone.envs.evaders import EscapeParams, escape_directions, move_evaders
 from atdrone.envs.geometry import Geometry, nearest_obstacles, offsets
 from atdrone.envs.kinematics import advance, turn
