@@ -156,7 +156,7 @@ def test_the_ray_job_block_runs_after_the_demo_and_stops_only_its_head(block: Bl
     submits a training job under a fresh run name and an evaluation job, and stops that head alone; the
     demo's run and champion are untouched."""
     import shutil
-    import socket
+    import time
 
     import mlflow
 
@@ -177,11 +177,20 @@ def test_the_ray_job_block_runs_after_the_demo_and_stops_only_its_head(block: Bl
         assert "run: hola_job" in done.stdout and (run_dir / "registry.db").is_file()
         after = mlflow.MlflowClient(store).get_model_version_by_alias("atdrone-hola_quick", "champion").version
         assert after == champion  # the job's run registered atdrone-hola_job, and the demo's champion stayed
-        with socket.socket() as probe:  # the head's GCS port is closed: the block stopped what it started
-            assert probe.connect_ex(("127.0.0.1", 6390)) != 0
+        deadline = time.monotonic() + 30  # the head's GCS port closes: the block stopped what it started
+        while _listening(6390):
+            assert time.monotonic() < deadline, "the block's Ray head still listens on 6390"
+            time.sleep(1)
     finally:
         shutil.rmtree(run_dir, ignore_errors=True)
         (ROOT / "ray_head.log").unlink(missing_ok=True)
+
+
+def _listening(port: int) -> bool:
+    import socket
+
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
 def _serves(command: list[str], env: dict[str, str]) -> None:
