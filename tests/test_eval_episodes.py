@@ -43,7 +43,7 @@ def one_torch_thread() -> Iterator[None]:
 
 def sampling_partners() -> list[Policy]:
     """Rule-based drones and the zoo's two trained drones, sampling their actions."""
-    spec = {m.name: m for m in load_zoo("zoo3").spec.members}
+    spec = {m.name: m for m in load_zoo("zoo3", "4p2e1o").spec.members}
     neural = []
     for name in ("sp_high", "sp_low"):
         policy = load_policy(checkpoint_path(spec[name]), deterministic=False)
@@ -88,7 +88,7 @@ def test_every_episode_of_a_batched_evaluation_is_the_episode_played_alone(task:
 
 
 def test_the_batch_size_changes_no_episode_record() -> None:
-    learner = load_policy(checkpoint_path(load_zoo("zoo2").spec.members[0]), deterministic=False)
+    learner = load_policy(checkpoint_path(load_zoo("zoo2", "4p2e1o").spec.members[0]), deterministic=False)
     partners = sampling_partners()
     wide = run_episodes(learner, short("4p2e3o"), partners, episodes=20, seed=5)
     narrow = run_episodes(learner, short("4p2e3o"), partners, episodes=20, seed=5, max_envs=6)

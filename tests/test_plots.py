@@ -72,7 +72,7 @@ def test_the_showcase_is_a_whole_episode_with_zoo_partners_and_a_caption():
     from atdrone.policies.zoo import load_zoo
     from atdrone.teams.replay import play_episode, showcase
 
-    zoo = load_zoo("zoo2")
+    zoo = load_zoo("zoo2", "4p2e1o")
     policy = GreedyPolicy()
     policy.name = "member-x"
     frames, summary = showcase("4p2e1o", policy, zoo, seed=0, tries=3, frame_every=7)

@@ -167,10 +167,10 @@ def play_and_replay(
 
 
 def test_a_trained_policy_acts_from_observations_alone_exactly_as_in_the_simulator():
-    zoo = load_zoo("zoo2")
+    zoo = load_zoo("zoo2", "4p2e3o")
     if zoo.missing:
         pytest.skip(f"zoo2 checkpoints missing: {zoo.missing}")
-    sim, twins = zoo.policies(), load_zoo("zoo2").policies()  # two separate loads of each member
+    sim, twins = zoo.policies(), load_zoo("zoo2", "4p2e3o").policies()  # two separate loads of each member
     assert play_and_replay("4p2e3o", sim, twins, steps=120, give_poses=False) > 100
 
 

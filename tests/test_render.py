@@ -186,7 +186,7 @@ def test_frame_steps_show_the_whole_episode():
 
 
 def test_the_representative_episode_has_the_usual_outcome_and_a_median_length():
-    zoo = load_zoo("zoo2")
+    zoo = load_zoo("zoo2", "4p2e1o")
     played = [play_episode("4p2e1o", s, GreedyPolicy(), partners=zoo).summary for s in range(8, 13)]
     # greedy learners with the Zoo 2 drones, seeds 8-12: one collision, then four captures
     assert [(p["outcome"], p["steps"]) for p in played] == [

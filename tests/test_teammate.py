@@ -76,7 +76,7 @@ def _fit_decoder(model: TeammateActorCritic, x: torch.Tensor, m: torch.Tensor, s
 
 
 def test_the_rollout_records_each_teammates_executed_turn_and_distribution():
-    zoo = load_zoo("zoo3").policies()
+    zoo = load_zoo("zoo3", "4p2e1o").policies()
     worker = RolloutWorker("4p2e1o", 3, _naht(), TINY_PPO, partners=[zoo[0], zoo[2]], num_ctrl=2)
     frag = worker.collect(12)
     assert frag.mates is not None and frag.mates.shape == (12, 16, 2, 3, 3)
@@ -199,7 +199,7 @@ def test_a_pool_sharing_a_member_with_an_evaluation_zoo_is_refused_in_one_line(t
 
 def test_a_copied_checkpoint_is_the_same_member(tmp_path):
     copy = tmp_path / "copy.pt"
-    copy.write_bytes((CONFIG_DIR / "zoos" / "checkpoints" / "sp_high.pt").read_bytes())
+    copy.write_bytes((CONFIG_DIR / "zoos" / "checkpoints" / "4p2e1o" / "sp_high.pt").read_bytes())
     pool = tmp_path / "p.json"
     pool.write_text(
         json.dumps({"name": "p", "members": [{"name": "c", "kind": "checkpoint", "checkpoint": str(copy)}]})

@@ -24,6 +24,7 @@ from atdrone.config import TASK_NAMES, read_document, repo_path
 from atdrone.policies.base import PolicyError
 
 MANIFEST = "configs/zoos/manifest.json"
+TASK_FIELD = "{task}"  # in a checkpoint path: the task the zoo is played on
 FORMAT = 1
 ZOOS = ("zoo1", "zoo2", "zoo3", "zoo4", "validation")
 POOLS = ("train_pool",)
@@ -35,11 +36,12 @@ class ManifestError(PolicyError):
 
 def rule_params(kind: str, params: dict[str, float]) -> dict[str, float]:
     """A rule-based drone's full parameters: its constructor's defaults overlaid with ``params``."""
-    from atdrone.policies.zoo import RULES
+    from atdrone.policies.rules import GreedyPolicy, VicsekPolicy
 
+    rules: dict[str, type] = {"greedy": GreedyPolicy, "vicsek": VicsekPolicy}
     defaults = {
         k: p.default
-        for k, p in inspect.signature(RULES[kind]).parameters.items()
+        for k, p in inspect.signature(rules[kind]).parameters.items()
         if p.default is not inspect.Parameter.empty
     }
     return {k: float(v) for k, v in {**defaults, **params}.items()}
@@ -63,8 +65,6 @@ def _header(path: Path) -> dict[str, Any]:
 
 def member_entry(member: dict[str, Any], task: str) -> dict[str, Any]:
     """One member of a zoo document as the manifest holds it on ``task``."""
-    from atdrone.policies.zoo import TASK_FIELD
-
     kind = member["kind"]
     entry: dict[str, Any] = {"name": member["name"], "kind": kind}
     if kind != "checkpoint":

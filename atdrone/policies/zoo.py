@@ -25,6 +25,7 @@ from typing import Any, Literal
 from atdrone.config import ConfigError, parse_document, read_document, repo_path
 from atdrone.errors import UserError
 from atdrone.policies.base import Policy, PolicyError
+from atdrone.policies.manifest import TASK_FIELD, check_digest, task_version
 from atdrone.policies.rules import GreedyPolicy, VicsekPolicy
 
 ZOO_NAMES = ("zoo1", "zoo2", "zoo3", "zoo4")  # the unseen (test) zoos: the paper's three and the diverse Zoo 4
@@ -51,9 +52,6 @@ class MemberSpec:
     def label(self) -> str:
         """The name in records: ``name@task`` for a cross-task partner."""
         return f"{self.name}@{self.cross_task}" if self.cross_task else self.name
-
-
-TASK_FIELD = "{task}"
 
 
 @dataclass(frozen=True)
@@ -133,8 +131,6 @@ class Zoo:
     @property
     def version(self) -> str:
         """The zoo manifest's version of this zoo's task ("" when not resolved or not in the manifest)."""
-        from atdrone.policies.manifest import task_version
-
         return task_version(self.task) if self.task else ""
 
     def cross_task(self) -> list[str]:
@@ -176,8 +172,6 @@ def build_policy(spec: MemberSpec, task: str = "", zoo: str = "") -> Policy:
         policy = RULES[spec.kind](**spec.params)
     else:
         path = checkpoint_path(spec)
-        from atdrone.policies.manifest import check_digest
-
         check_digest(path)
         policy = load_checkpoint(path)
         trained_on = str(getattr(policy, "task", "") or "")

@@ -13,14 +13,14 @@ config says it trains a best response on purpose.
 
 from __future__ import annotations
 
-import inspect
 import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from atdrone.config import CONFIG_DIR, ConfigError, read_document
+from atdrone.config import CONFIG_DIR, TASK_NAMES, ConfigError, read_document
 from atdrone.errors import UserError
+from atdrone.policies.manifest import rule_params
 from atdrone.policies.zoo import RULES, ZOO_NAMES, MemberSpec, Zoo, checkpoint_path, load_zoo
 
 BEST_RESPONSE_LABEL = "best response (the training pool shares partners with the evaluation zoos)"
@@ -46,13 +46,7 @@ def load_pool(name_or_path: str | Path) -> Zoo:
 def identity(spec: MemberSpec) -> str:
     """What makes two members the same drone: a rule with its full parameters, or a checkpoint's weights."""
     if spec.kind in RULES:
-        defaults = {
-            k: p.default
-            for k, p in inspect.signature(RULES[spec.kind]).parameters.items()
-            if p.default is not inspect.Parameter.empty
-        }
-        params = {k: float(v) for k, v in {**defaults, **spec.params}.items()}
-        return f"{spec.kind}:{json.dumps(params, sort_keys=True)}"
+        return f"{spec.kind}:{json.dumps(rule_params(spec.kind, spec.params), sort_keys=True)}"
     path = checkpoint_path(spec)
     if path.is_file():
         from atdrone.models.checkpoint import read_header  # torch, only for checkpoint members
@@ -62,13 +56,20 @@ def identity(spec: MemberSpec) -> str:
 
 
 def shared_members(pool: Zoo, zoos: Sequence[str] = ZOO_NAMES) -> list[str]:
-    """ "pool member = zoo:member" for every pool member that is also a member of one of ``zoos``."""
-    seen: dict[str, list[str]] = {}
-    for zoo_name in zoos:
-        zoo = load_zoo(zoo_name)
-        for spec in zoo.spec.members:
-            seen.setdefault(identity(spec), []).append(f"{zoo.name}:{spec.name}")
-    return [f"{m.name} = {', '.join(seen[identity(m)])}" for m in pool.spec.members if identity(m) in seen]
+    """ "pool member = zoo:member" for every pool member that is also a member of one of ``zoos``: the same rule
+    drone, or the same weights (or file) on some task (drones made per task are compared task by task)."""
+    tasks = [pool.task] if pool.task else list(TASK_NAMES)
+    shared: dict[str, set[str]] = {}
+    for task in tasks:
+        seen: dict[str, list[str]] = {}
+        for zoo_name in zoos:
+            zoo = load_zoo(zoo_name, task)
+            for spec in zoo.spec.members:
+                seen.setdefault(identity(spec), []).append(f"{zoo.name}:{spec.name}")
+        for m in pool.resolve(task).spec.members:
+            if identity(m) in seen:
+                shared.setdefault(m.name, set()).update(seen[identity(m)])
+    return [f"{m.name} = {', '.join(sorted(shared[m.name]))}" for m in pool.spec.members if m.name in shared]
 
 
 def check_pool(name_or_path: str, best_response: bool, path: str, task: str | None = None) -> Zoo:
