@@ -345,6 +345,7 @@ def _train_local(args: argparse.Namespace) -> int:
         args.config,
         seed=args.seed,
         name=args.name,
+        task=args.task,
         total_env_steps=args.total_env_steps,
         max_minutes=args.max_minutes,
         out_dir=args.out_dir,

@@ -149,11 +149,11 @@ def _policy(tmp_path: Path, task: str = "4p2e1o", num_p: int = 4, num_e: int = 2
     return str(path)
 
 
-def test_evaluate_refuses_a_policy_whose_observation_layout_does_not_fit(tmp_path, capsys):
+def test_evaluate_refuses_a_policy_of_another_team_size_unless_asked(tmp_path, capsys):
     task = _task(**{"players.num_p": 3, "players.num_unctrl": 1})
     task["task"]["task_name"] = "3p2e1o"
     argv = ["evaluate", "--policy", _policy(tmp_path), "--task", _file(tmp_path, task, "t.json"), "--zoo", "zoo1"]
-    _one_line_error(capsys, [*argv, "--out-dir", str(tmp_path)], "trained on 4p2e1o (4 pursuers): its observation")
+    _one_line_error(capsys, [*argv, "--out-dir", str(tmp_path)], "trained on 4p2e1o, not on 3p2e1o")
 
 
 def test_evaluate_refuses_a_policy_of_another_task_unless_asked_and_then_labels_it(tmp_path, capsys):
