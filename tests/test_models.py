@@ -24,7 +24,7 @@ from atdrone.models.networks import ActorCritic, NetConfig
 from atdrone.policies.base import PolicyError
 from atdrone.policies.neural import PAD_ROWS, NeuralPolicy, load_policy
 
-ZOO = Path(__file__).resolve().parents[1] / "configs" / "zoos" / "checkpoints"
+ZOO = Path(__file__).resolve().parents[1] / "configs" / "zoos" / "checkpoints" / "4p2e1o"
 D = 24  # 4p2e observation width: 4 features x (2 evaders + 1 obstacle + 3 teammates)
 
 

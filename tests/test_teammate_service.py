@@ -54,7 +54,9 @@ def _check_pool_run(result: dict[str, Any], run_dir, name: str, algorithm: str, 
         decoded = ["train/decoder_loss" in h for h in trained.history]
         assert all(decoded) if algorithm == "naht_d" else not any(decoded)
     rows = _members(run_dir, name)
-    assert [r["tags"] for r in rows] == [{"partners": UNSEEN_LABEL, "pool": "train_pool"}] * len(reports)
+    assert [r["tags"].get("zoo_version", "")[:3] for r in rows] == ["zv-"] * len(reports)  # the partners' version
+    tags = [{k: v for k, v in r["tags"].items() if k != "zoo_version"} for r in rows]
+    assert tags == [{"partners": UNSEEN_LABEL, "pool": "train_pool"}] * len(reports)
     arch = read_header(run_dir / "members" / f"{rows[-1]['id']}.pt")["architecture"]
     if algorithm == "mappo":
         assert arch["class"] == "ActorCritic" and arch["centralised_critic"] is True
