@@ -202,8 +202,8 @@ def _aggregates(cfg: BenchmarkConfig, agg: pd.DataFrame, poi: pd.DataFrame) -> l
             "Over each method's runs x tasks x test zoos (seeds "
             f"{', '.join(map(str, cfg.seeds))}): interquartile mean (IQM) and mean with stratified bootstrap 95 % "
             f"intervals ({cfg.bootstrap_reps:,} resamples, seed {cfg.bootstrap_seed}; each task's runs resampled, "
-            "a run whole across its zoos); SUC as a fraction, and normalised SUC over the tasks whose every test "
-            "zoo has a usable bound. Performance profiles: performance_profiles.png, profiles.csv.",
+            "each run kept together across its zoos); SUC as a fraction, and normalised SUC over the tasks whose "
+            "every test zoo has a usable bound. Performance profiles: performance_profiles.png, profiles.csv.",
             "",
             "| score | method | statistic | value | 95 % interval | runs x tasks x zoos |",
             "|---|---|---|---|---|---|",
