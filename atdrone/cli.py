@@ -28,7 +28,7 @@ from typing import Any
 from atdrone.cli_registry import add_member_location, add_registry, run_registry
 from atdrone.cli_zoos import add_zoos, run_zoos
 from atdrone.config import TASK_NAMES, ConfigError, read_json
-from atdrone.errors import UserError, interrupt_exit_code, interrupt_on_signals
+from atdrone.errors import UserError, interrupt_exit_code, interrupt_on_signals, interrupted
 from atdrone.fileio import output_file
 
 EXIT_USAGE = 2  # bad arguments or a bad task document
@@ -265,20 +265,6 @@ def run_train(args: argparse.Namespace) -> int:
         if not interrupted(exc):
             raise
         return _say_what_was_kept(args, service, exc)
-
-
-def interrupted(exc: BaseException) -> bool:
-    """Whether ``exc`` is, or was caused by, a Ctrl-C: one that lands while an extension module initialises
-    (a lazy import of matplotlib's, for one) comes out as ``ImportError: initialization failed`` raised from
-    the KeyboardInterrupt."""
-    seen: set[int] = set()
-    cause: BaseException | None = exc
-    while cause is not None and id(cause) not in seen:
-        if isinstance(cause, KeyboardInterrupt):
-            return True
-        seen.add(id(cause))
-        cause = cause.__cause__ or cause.__context__
-    return False
 
 
 def _say_what_was_kept(args: argparse.Namespace, service: bool, exc: BaseException, what: str = "interrupted") -> int:
