@@ -140,3 +140,26 @@ def test_landed_means_the_firmware_says_so_not_a_low_height() -> None:
     assert not confirmed_down(cut, 0.0) and cut_by_firmware(cut)
     assert cut_by_firmware(1 << crtp.BIT_TUMBLED) and cut_by_firmware(1 << crtp.BIT_CRASHED)
     assert not cut_by_firmware(flying | finished)
+
+
+def _cut_report(heights: list[float], state: str, pauses: int = 0) -> tuple[float, str]:
+    """Where :meth:`Landing._cut_at` places a cut drone whose last ticks saw ``heights`` in ``state``."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from atdrone.deploy.landing import RECENT, Landing
+
+    seen = deque(((z, state, pauses) for z in heights), maxlen=RECENT)
+    fake = SimpleNamespace(recent={"cf1": seen}, last_seen={"cf1": heights[-1]}, state={"cf1": "stopped"})
+    return Landing._cut_at(fake, "cf1")  # type: ignore[arg-type]
+
+
+def test_a_drone_that_fell_before_the_report_is_cut_in_the_air_whether_flying_or_taking_off() -> None:
+    """The supervisor's report comes ticks after the cut; by then a falling drone lies on the floor. A drone
+    that was taking off or flying at 0.5 m is reported cut at 0.5 m, one still on the floor at the floor."""
+    fell = [0.5, 0.5, 0.5, 0.4, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
+    assert _cut_report(fell, "flying") == (0.5, "flying")
+    assert _cut_report(fell, "taking_off") == (0.5, "taking_off")
+    assert _cut_report([0.0] * 10, "taking_off")[0] < 0.05
+    # a landing drone near the floor stays where it was two ticks back (it was coming down anyway)
+    assert _cut_report([0.3, 0.2, 0.1, 0.02, 0.0, 0.0], "landing")[0] < 0.05

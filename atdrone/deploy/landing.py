@@ -247,7 +247,7 @@ class Landing:
             return self.last_seen.get(n, float("nan")), self.state[n]
         paused = [k for k in range(1, len(seen)) if seen[k][2] != seen[k - 1][2]]
         z, state, _ = seen[paused[0] - 1] if paused else seen[max(0, len(seen) - 3)]
-        if state == "flying" and z < 0.05:  # a flying drone is not on the floor: it fell before the report came
+        if state in ("taking_off", "flying") and z < 0.05:  # it fell before the report came (or never rose)
             z = max(zs[0] for zs in seen)
         return z, state
 
