@@ -363,10 +363,11 @@ def test_a_ctrl_c_that_lands_in_an_import_is_an_interruption_not_an_internal_err
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     import atdrone.cli as cli
+    import atdrone.cli_train as cli_train
 
     config = _train_config(tmp_path)
     run_dir = tmp_path / "runs" / "ctrl_c"
-    monkeypatch.setattr(cli, "_train_local", _import_interrupted(run_dir))
+    monkeypatch.setattr(cli_train, "_train_local", _import_interrupted(run_dir))
     assert main(["train", str(config)]) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         f"atdrone train: interrupted before the first checkpoint: nothing was kept in {run_dir}; "
@@ -376,7 +377,7 @@ def test_a_ctrl_c_that_lands_in_an_import_is_an_interruption_not_an_internal_err
     def broken(args: object) -> int:  # an ImportError of its own is still a bug
         raise ImportError("initialization failed")
 
-    monkeypatch.setattr(cli, "_train_local", broken)
+    monkeypatch.setattr(cli_train, "_train_local", broken)
     assert main(["train", str(config)]) == 1
     assert "internal error: ImportError: initialization failed" in capsys.readouterr().err
 
