@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import select
 import socket
 import struct
 import threading
@@ -77,8 +78,9 @@ class SimFleet:
         for n in names:
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             s.bind(("127.0.0.1", 0))
-            s.settimeout(0.05)
+            s.setblocking(False)
             self._socks[n] = s
+        self._taking = {n: threading.Lock() for n in names}  # one reader of a drone's socket at a time, in order
         self.radio = (  # packets per clock second
             SimRadio(packet_rate * clock.rate, loss=radio_loss, retries=radio_retries, seed=seed) if radio else None
         )
@@ -189,6 +191,10 @@ class SimFleet:
         while not self._stop.is_set():
             t += dt
             self.clock.sleep_until(t)
+            # packets that reached this host before the step are the firmware's before its watchdogs judge: a
+            # step of this process run late (the host busy) must not cut a drone whose keep-alive is waiting
+            for n in self.drones:
+                self._take(n)
             now = self.clock.now()
             with self._lock:
                 for d in self.drones.values():
@@ -217,18 +223,29 @@ class SimFleet:
         sock = self._socks[name]
         while not self._stop.is_set():
             try:
-                data, peer = sock.recvfrom(64)
-            except (TimeoutError, OSError):
+                ready, _, _ = select.select([sock], [], [], 0.05)
+            except (OSError, ValueError):  # closed by stop()
                 continue
-            d = self.drones[name]
-            if d.link_cut or not data:
-                continue
-            self._peers[name] = peer
-            port, channel = crtp.split_header(data[0])
-            with self._lock:
-                replies = self._handle(d, port, channel, data[1:])
-            for reply in replies:
-                self._send(name, *reply)
+            if ready:
+                self._take(name)
+
+    def _take(self, name: str) -> None:
+        """Handle every packet waiting on the drone's socket, in the order sent."""
+        with self._taking[name]:
+            while True:
+                try:
+                    data, peer = self._socks[name].recvfrom(64)
+                except OSError:  # nothing waiting (or closed)
+                    return
+                d = self.drones[name]
+                if d.link_cut or not data:
+                    continue
+                self._peers[name] = peer
+                port, channel = crtp.split_header(data[0])
+                with self._lock:
+                    replies = self._handle(d, port, channel, data[1:])
+                for reply in replies:
+                    self._send(name, *reply)
 
     # ------------------------------------------------------------ the protocol
     def _handle(self, d: SimCrazyflie, port: int, ch: int, p: bytes) -> list[tuple[int, int, bytes]]:
