@@ -278,13 +278,14 @@ def test_a_hola_method_planned_under_three_hypergraph_generations_is_refused(tmp
         load_benchmark({**doc, "env_steps": three - per_update * doc["updates_per_generation"]})
 
 
-def test_the_smoke_test_report_says_it_ranks_nothing_and_marks_the_short_hola(made_up) -> None:
+def test_the_smoke_test_report_says_it_ranks_nothing_and_marks_the_short_hola(made_up, tmp_path: Path) -> None:
     cfg, records = made_up
     text = write_report(cfg, records)["report.md"].read_text()
     assert "**A smoke test: it ranks nothing.**" in text
     assert "**Marked: hola.** hola is planned for 1 generation(s) at 1,024 env steps: 0 hypergraph" in text
     assert "Marked: sp" not in text
-    plain = load_benchmark({**DOC, "smoke_test": False, "methods": {"sp": {"experiment": "sp_quick"}}})
+    folders = {"out_dir": str(cfg.folder.parent), "results_dir": str(tmp_path / "plain")}
+    plain = load_benchmark({**DOC, **folders, "smoke_test": False, "methods": {"sp": {"experiment": "sp_quick"}}})
     plain_records = [r for r in records if r["cell"]["method"] != "hola"]
     assert "smoke test" not in write_report(plain, plain_records)["report.md"].read_text()
 
