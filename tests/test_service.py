@@ -645,9 +645,9 @@ def test_runs_of_one_name_never_mix_one_driver_holds_a_run_and_a_resume_checks_w
     ), line
     a_registry = Path(json.loads((run_dir / STATE_FILE).read_text())["registry"])
     assert a_registry.parent.parent == tmp_path / "registries" / "same"  # keyed by the run's identifier
-    a_files = {p: p.read_bytes() for p in a_registry.parent.iterdir()}
     with Registry(a_registry, create=False) as reg:
         assert len(reg.members()) == 2
+    a_files = {p: p.read_bytes() for p in a_registry.parent.iterdir()}  # after this test's own read of it
 
     b = run_experiment(load_experiment(b_doc), progress=False, stop_after=1)  # same name, same registry folder
     b_registry = Path(json.loads((Path(b["run_dir"]) / STATE_FILE).read_text())["registry"])

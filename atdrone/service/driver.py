@@ -439,8 +439,8 @@ def _await_generation(coordinator: Any, name: str, g: int, progress: bool, every
 
 
 def _release(crew: _Crew, registry: Any, name: str, keep: bool, cpus: Any, timeout_s: float = 30.0) -> None:
-    """Fold the registry's log into its file; free the run's CPUs (``cpus``, a placement group); kill the run's
-    registry actor, and its coordinator (with it its workers) unless ``keep`` (a run that ended well: the pool
+    """Fold the registry's log into its file; free the run's CPUs (``cpus``, a placement group); close and kill the
+    run's registry actor, and its coordinator (with it its workers) unless ``keep`` (a run that ended well: the pool
     takes it back); wait for the registry's name to be free."""
     import ray
     from ray.util.placement_group import remove_placement_group
@@ -451,6 +451,10 @@ def _release(crew: _Crew, registry: Any, name: str, keep: bool, cpus: Any, timeo
     if not keep:
         ray.kill(crew.coordinator)
     remove_placement_group(cpus)
+    try:  # closed before the kill: the actor's exit, which Ray finishes after the name is free, writes nothing
+        ray.get(registry.close.remote(), timeout=timeout_s)
+    except ray.exceptions.RayError as exc:
+        log.warning("could not close the registry actor of %s: %s", name, _first_line(exc))
     ray.kill(registry, no_restart=True)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
