@@ -1,7 +1,7 @@
 """The deploy job end to end on the sim backend: real cflib against the simulated fleet.
 
 Every flight flies the shipped config (configs/deploy/sim_4p2e1o.json) unchanged: its
-scaled clock (four simulated seconds per wall second), the radio model with lost and
+scaled clock (two simulated seconds per wall second), the radio model with lost and
 retried packets, the shield's and the heartbeat's thresholds; a test changes only the
 member (a registry entry), the horizon, the faults and where the log goes. The checks
 read the flight log the job wrote, what the simulated firmware saw (its counters, what

@@ -43,7 +43,7 @@ STILL = 0.1  # m/s: a landed drone measured slower than this
 LANDED_CONFIRM = 2.5  # s: the supervisor reports a drone flying until its motors idled for 2 s
 SETTLE_EXTRA = 3.0  # s past a landing and its confirmation before the flight gives up waiting (the hard limit)
 TOUCH = 1.0  # scaled distance: two ellipsoids touching
-RECENT = 10  # ticks of heights kept: a cut is reported at the highest of them (a paused host sees it late)
+RECENT = 50  # ticks of heights kept (5 s of the drones' clock): a paused host's cut is reported late
 CUT_BITS = (1 << BIT_LOCKED) | (1 << BIT_TUMBLED) | (1 << BIT_CRASHED)
 
 
@@ -246,9 +246,12 @@ class Landing:
         if not seen:
             return self.last_seen.get(n, float("nan")), self.state[n]
         paused = [k for k in range(1, len(seen)) if seen[k][2] != seen[k - 1][2]]
-        z, state, _ = seen[paused[0] - 1] if paused else seen[max(0, len(seen) - 3)]
+        z, state, _ = seen[paused[-1] - 1] if paused else seen[max(0, len(seen) - 3)]
         if state in ("taking_off", "flying") and z < 0.05:  # it fell before the report came (or never rose)
-            z = max(zs[0] for zs in seen)
+            up = 0  # the heights of its last stretch in the air, before any landing or earlier takeoff
+            while up < len(seen) and seen[len(seen) - 1 - up][1] in ("taking_off", "flying"):
+                up += 1
+            z = max(zs[0] for zs in seen[len(seen) - up :]) if up else z
         return z, state
 
     # ------------------------------------------------------------ landing

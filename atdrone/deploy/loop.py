@@ -73,7 +73,6 @@ GROW_CAP = 1.0  # m: the most a drone without a valid pose is grown by (it lands
 # s a thread holds the interpreter before another gets it: 1 ms (Python's 5 ms) in flight, so that the heartbeat
 # and the loop wait less behind cflib's, the motion capture's and the sender's threads on a busy host
 SWITCH = 0.001
-MOVING = 0.05  # m/s: a drone commanded faster than this should show it (a pose that does not is frozen)
 
 
 class Flight(Episodes):
@@ -140,7 +139,6 @@ class Flight(Episodes):
         self.link_health = LinkHealth(self.names, clock.rate, cfg.shield.link_timeout)
         self.links = LinkView(np.zeros(D), 0.0)
         self.speed = np.full(D, np.nan)  # measured speed (m/s) per drone, NaN unknown
-        self.commanded = np.zeros(D)  # speed (m/s) of the velocity last sent to each drone
         self.reaction = Verdict(Reaction.NONE, (), ())  # the most severe reaction so far
         self.landing_from: dict[str, np.ndarray] = {}  # where each landing began (its landing column)
         self.cut: dict[str, tuple[float, str]] = {}  # drones whose motors were cut: height, state then
@@ -165,10 +163,9 @@ class Flight(Episodes):
             if pose is None:
                 continue
             pos[i], yaw[i], age[i] = pose.pos, pose.yaw, max(0.0, now - pose.t)
-            moving = self.state[name] in ("taking_off", "landing") or (
-                self.state[name] == "flying" and self.commanded[i] > MOVING
-            )
-            if pose.still >= FROZEN_FRAMES and moving:  # frames arrive, the pose does not change: it is as old
+            # in the air a body never holds its pose to NOISE_FLOOR for FROZEN_FRAMES frames, hovering included (the
+            # drone sways by millimetres, the cameras' noise is tenths of one): frames arrive, the pose is as old
+            if pose.still >= FROZEN_FRAMES and self.state[name] in AIRBORNE:
                 age[i] = max(age[i], now - pose.moved_t)
             age[i] = min(age[i], max(grace, 0.0))
         return pos, yaw, age
@@ -342,7 +339,6 @@ class Flight(Episodes):
         for n, sp in stream.items():
             i = self.names.index(n)
             self.prev_setpoint[i] = sp[0]
-            self.commanded[i] = float(np.linalg.norm(sp[1]))
         if decision.hold_at is not None:
             self.hold_at = decision.hold_at.copy()
         pos = self._last_pose[1] if self._last_pose is not None else np.full((len(self.names), 3), np.nan)
