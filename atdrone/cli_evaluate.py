@@ -48,6 +48,12 @@ def add_evaluate(subparsers: Any) -> argparse.ArgumentParser:
         action="store_true",
         help="let a policy trained on one task play another (labelled NAME@TASK in the report)",
     )
+    p.add_argument(
+        "--splits",
+        action="store_true",
+        help="play every split of the team instead of the task's: the learner in k of the N pursuer slots, every k "
+        "from 1 to N-1 and every seat set (14 for 4 pursuers), --episodes each; prints one row per k",
+    )
     p.add_argument("--out-dir", type=Path, default=Path("eval_out"), help="output folder (default eval_out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
@@ -100,6 +106,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     task_part = "all" if task_arg == "all" else tasks[0].name
     zoo_part = "all" if args.zoo == "all" else (protocols[0] or zoos[0]).name
     stem = f"{label}_{task_part}_{zoo_part}"
+    if args.splits:
+        return _run_splits(args, learner, tasks, zoos, protocols, stem)
     total = len(tasks) * len(playable) * args.episodes * len(args.seeds)
     cells: list[Any] = []
     with tqdm(total=total, unit="ep", desc="evaluate", file=sys.stderr, disable=args.no_progress) as bar:
@@ -138,3 +146,54 @@ def _event_line(evaluation: Any) -> list[str]:
     value, interval = evaluation.pooled, evaluation.interval
     unit = lambda m: " steps" if m == "REC" else " %"
     return [f"{m} {value[m]:.1f}{unit(m)} [{interval[m][0]:.1f}, {interval[m][1]:.1f}]" for m in EVENT_METRICS]
+
+
+def _run_splits(
+    args: argparse.Namespace, learner: Any, tasks: list[Any], zoos: list[Any], protocols: list[Any], stem: str
+) -> int:
+    """``--splits``: every seat set of every task x zoo; the per-k table printed, and written as
+    ``<stem>_splits.csv`` (one row per task, zoo, k) and ``<stem>_splits_episodes.csv`` (every episode)."""
+    import pandas as pd
+    from tqdm import tqdm
+
+    from atdrone.fileio import atomic_write_text
+    from atdrone.teams.splits import evaluate_splits, seat_assignments
+
+    cells = [(t, z, p) for t in tasks for z, p in zip(zoos, protocols, strict=True) if not z.missing]
+    seat_sets = sum(len(seat_assignments(t.players.num_p)) for t, _, _ in cells)
+    tables, episodes = [], []
+    with tqdm(
+        total=seat_sets * args.episodes * len(args.seeds),
+        unit="ep",
+        desc="splits",
+        file=sys.stderr,
+        disable=args.no_progress,
+    ) as bar:
+        for task, zoo, protocol in cells:
+            split = evaluate_splits(
+                learner,
+                task,
+                zoo,
+                args.episodes,
+                args.seeds,
+                protocol=protocol,
+                cross_task=args.cross_task,
+                on_progress=bar.update,
+            )
+            table = split.per_k().reset_index()
+            table.insert(0, "zoo", (protocol or zoo).name)
+            table.insert(0, "task", task.name)
+            tables.append(table)
+            records = split.records()
+            records.insert(0, "zoo", (protocol or zoo).name)
+            records.insert(0, "task", task.name)
+            episodes.append(records)
+    table = pd.concat(tables, ignore_index=True)
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    per_k = atomic_write_text(args.out_dir / f"{stem}_splits.csv", table.to_csv(index=False))
+    every = atomic_write_text(
+        args.out_dir / f"{stem}_splits_episodes.csv", pd.concat(episodes, ignore_index=True).to_csv(index=False)
+    )
+    print(f"\nwrote {per_k} and {every}")
+    return 0

@@ -112,3 +112,20 @@ def test_evaluate_takes_a_protocol_where_a_zoo_goes(tmp_path: Path) -> None:
     (report,) = out.glob("*.json")
     text = report.read_text()
     assert "zoo1+swap" in report.name and '"SUC_post"' in text and '"REC_ci95"' in text
+
+
+def test_evaluate_splits_plays_every_seat_set_and_prints_one_row_per_k(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`atdrone evaluate --splits`: the 14 seat sets of 4 pursuers, each --episodes; one row per k printed and in
+    the CSV, whose SUC equals the episodes' own (pooled over that k's seat sets)."""
+    args = ["evaluate", "--policy", "greedy", "--task", "4p2e1o", "--zoo", "zoo1", "--episodes", "2"]
+    assert main([*args, "--splits", "--no-progress", "--out-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    table = pd.read_csv(tmp_path / "greedy_4p2e1o_zoo1_splits.csv")
+    episodes = pd.read_csv(tmp_path / "greedy_4p2e1o_zoo1_splits_episodes.csv")
+    assert list(table.k) == [1, 2, 3] and list(table.seat_sets) == [4, 6, 4] and list(table.episodes) == [8, 12, 8]
+    assert episodes.groupby("k")["seats"].nunique().tolist() == [4, 6, 4]
+    for k, group in episodes.groupby("k"):
+        assert table.set_index("k").loc[k, "SUC"] == pytest.approx(100.0 * group["success"].mean())
+    assert "seat_sets" in out and "splits.csv" in out
