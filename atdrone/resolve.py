@@ -8,8 +8,9 @@ A name is tried as, in this order:
    same checkpoint digest is found when a registry has it); or a benchmark's kept weights:
    ``weights:METHOD/TASK`` or ``weights:BENCHMARK/METHOD/TASK`` (``weights/<method>/<task>.pt``
    and its manifest in a benchmark's results folder: those of ``$ATDRONE_WEIGHTS``, folders
-   separated by ``os.pathsep``, else every ``benchmarks/results/*``; the file's sha256 must
-   match the manifest's);
+   separated by ``os.pathsep``, else every ``benchmarks/results/*`` (the published ones) and
+   ``runs/benchmarks/*/results/*`` (a benchmark's own); the file's sha256 must match the
+   manifest's);
 3. a checkpoint file (a path that exists);
 4. a member id of a population registry (``hola-g3-0``): ``--db`` when given, else every
    registry under the runs folder (``runs/*/registry.db``). Every run numbers its members
@@ -242,9 +243,9 @@ def weights_roots() -> list[Path]:
         return [Path(p) for p in os.environ[WEIGHTS_ENV].split(os.pathsep) if p]
     from atdrone.config import repo_path
 
-    roots = {
-        p.resolve() for base in (Path("benchmarks/results"), repo_path("benchmarks/results")) for p in base.glob("*")
-    }
+    bases = (Path("benchmarks/results"), repo_path("benchmarks/results"))
+    roots = {p.resolve() for base in bases for p in base.glob("*")}
+    roots |= {p.resolve() for p in Path("runs/benchmarks").glob("*/results/*")}  # a benchmark's default results
     return sorted(p for p in roots if (p / "weights").is_dir())
 
 

@@ -383,3 +383,18 @@ def test_the_paper_budget_preset_runs_every_method_at_the_papers_budget() -> Non
     docs = [experiment_document(cfg, Cell("method", m, "4p2e1o", 0)) for m in cfg.methods]
     docs.append(experiment_document(cfg, Cell("br", "br", "4p2e1o", 0, "zoo1")))
     assert len({json.dumps([d["preset"], d["ppo"]], sort_keys=True) for d in docs}) == 1  # one PPO setting for all
+
+
+def test_a_benchmarks_default_results_are_its_own_and_its_weights_are_found_by_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without results_dir the report and weights go beside the cells (never over the committed
+    benchmarks/results/<name>), and weights:NAME/... finds them there from the working folder."""
+    from atdrone.resolve import weights_roots
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ATDRONE_WEIGHTS", raising=False)
+    cfg = load_benchmark({**DOC, "out_dir": "runs/benchmarks"})
+    assert cfg.results == tmp_path / "runs" / "benchmarks" / "made_up" / "results" / "made_up"
+    (cfg.results / "weights").mkdir(parents=True)
+    assert cfg.results in weights_roots()

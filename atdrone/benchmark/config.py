@@ -21,7 +21,7 @@ pool: the training pool of the methods that train against one (their section's `
 cell's experiment (e.g. ``num_workers``, ``ppo``). best_response: train the upper bound.
 references: the methods the others are compared with in paired differences (default the
 first method). bootstrap_reps / bootstrap_seed: the stratified bootstrap of the aggregates.
-results_dir: the report's folder (default ``benchmarks/results/<name>``). max_parallel: at
+results_dir: the report's folder (default ``<out_dir>/<name>/results/<name>``). max_parallel: at
 most this many cells at once (0: as many as the cluster's CPUs hold).
 extra_seeds: more seeds for some (method, task) runs, e.g. where a comparison needs them:
 ``[{"methods": ["hola", "sp"], "tasks": ["4p2e5o"], "seeds": [3, 4]}]`` (:class:`ExtraSeeds`);
@@ -131,8 +131,9 @@ class BenchmarkConfig:
 
     @property
     def results(self) -> Path:
-        """The report's folder."""
-        return Path(self.results_dir or f"benchmarks/results/{self.name}").resolve()
+        """The report's folder: ``results_dir``, by default ``<out_dir>/<name>/results/<name>`` (beside the cells; the
+        committed ``benchmarks/results/`` folders are written only when named)."""
+        return Path(self.results_dir).resolve() if self.results_dir else self.folder / "results" / self.name
 
     @property
     def reference_methods(self) -> tuple[str, ...]:
