@@ -279,6 +279,32 @@ class Tracker:
             client.set_registered_model_alias(name, CHAMPION, best.version)
         return str(version.version)
 
+    def register_weights(self, checkpoint: str | Path, name: str, alias: str, tags: Mapping[str, str]) -> str:
+        """Register published weights as a version of model ``name`` with the alias ``alias`` (a benchmark's
+        ``<method>-<task>``), logged to the active run under ``weights/``; a version of the active run with the
+        same ``alias`` tag is reused (a resumed benchmark registering again). Returns the version number."""
+        path = Path(checkpoint)
+        active = self.mlflow.active_run()
+        if active is None:
+            raise RuntimeError("register_weights needs an active run")
+        self.mlflow.log_artifact(str(path), artifact_path=f"weights/{alias}")
+        client = self.mlflow.MlflowClient()
+        with _store_lock(self.uri):
+            if not client.search_registered_models(filter_string=f"name = '{name}'"):
+                client.create_registered_model(
+                    name, description="a benchmark's published weights (project checkpoints)"
+                )
+        info = {**tags, "alias": alias, "checkpoint_file": path.name}
+        mine = [
+            v
+            for v in client.search_model_versions(f"name = '{name}'")
+            if v.run_id == active.info.run_id and v.tags.get("alias") == alias
+        ]
+        source = f"{active.info.artifact_uri}/weights/{alias}/{path.name}"
+        version = mine[0] if mine else client.create_model_version(name, source, run_id=active.info.run_id, tags=info)
+        client.set_registered_model_alias(name, alias, version.version)
+        return str(version.version)
+
     def champion_version(self, name: str) -> str | None:
         """The version of model ``name`` the alias ``champion`` points at (None when it has none)."""
         return champion_version(name, self.uri)

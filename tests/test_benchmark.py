@@ -105,7 +105,16 @@ def test_a_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_un
     assert "3 cells: 1 done, 2 to run" in capsys.readouterr().out
     assert first.read_bytes() == kept  # the finished cell was not run again
     assert summary["mlflow_run_id"] == parent  # the same parent run, continued
-    assert mlflow.MlflowClient(uri).get_run(parent).info.status == "FINISHED"
+    client = mlflow.MlflowClient(uri)
+    assert client.get_run(parent).info.status == "FINISHED"
+    # one experiment per benchmark, the cells' runs nested under its run; the only models: its published weights
+    assert {e.name for e in client.search_experiments()} <= {"Default", "killed", "whole"}
+    experiment = client.get_experiment_by_name("killed").experiment_id
+    nested = client.search_runs([experiment], f"tags.`mlflow.parentRunId` = '{parent}'")
+    assert {r.info.run_name for r in nested} >= {"killed-sp-4p2e1o-s0-sp", "killed-sp-4p2e1o-s1-sp"}
+    assert {m.name for m in client.search_registered_models()} == {"atdrone-killed", "atdrone-whole"}
+    published = client.get_model_version_by_alias("atdrone-killed", "sp-4p2e1o")
+    assert published.tags["method"] == "sp" and published.tags["task"] == "4p2e1o"
 
     got = _report(Path(killed["results_dir"]), "killed")
     want = _report(Path(whole["results_dir"]), "whole")

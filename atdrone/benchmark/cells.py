@@ -100,7 +100,8 @@ def experiment_document(cfg: BenchmarkConfig, cell: Cell) -> dict[str, Any]:
     doc.update(cfg.experiment)
     doc.update(
         name=run_name(cfg, cell),
-        experiment=run_name(cfg, cell),
+        experiment=cfg.name,  # the benchmark's experiment: the cell's run nests under the benchmark's run
+        register=False,  # the benchmark registers only the weights it publishes
         task=cell.task,
         seed=cell.seed,
         out_dir=str(cfg.folder / "runs"),
@@ -185,7 +186,9 @@ def sha256_file(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def run_cell(cfg: BenchmarkConfig, cell: Cell, tracking_uri: str | None) -> dict[str, Any]:
+def run_cell(
+    cfg: BenchmarkConfig, cell: Cell, tracking_uri: str | None, parent_run: str | None = None
+) -> dict[str, Any]:
     """Train (or resume) and evaluate one cell here; its record (JSON-ready)."""
     import torch
 
@@ -205,7 +208,7 @@ def run_cell(cfg: BenchmarkConfig, cell: Cell, tracking_uri: str | None) -> dict
         from atdrone.service.driver import run_experiment
 
         exp = experiment(cfg, cell)
-        run_experiment(exp, resume=True, tracking_uri=tracking_uri, progress=False)
+        run_experiment(exp, resume=True, tracking_uri=tracking_uri, progress=False, parent_run=parent_run)
         run_dir = Path(exp.out_dir) / exp.name
         state = json.loads((run_dir / "service_state.json").read_text())["coordinator"]
         budget.update({k: int(v) for k, v in state.get("budget", {}).items()})

@@ -109,7 +109,7 @@ def run_benchmark(
         if state.get("mlflow_run_id") != run_id:
             _write_json(state_path, {"mlflow_run_id": run_id})
         tracker.log_params({"benchmark": cfg.to_dict()})
-        records = _run_cells(cfg, uri, progress)
+        records = _run_cells(cfg, uri, progress, run_id)
         from atdrone.benchmark.bounds import bounds_from_records, write_bounds
         from atdrone.benchmark.report import table2, write_report
         from atdrone.benchmark.weights import keep_weights
@@ -121,10 +121,15 @@ def run_benchmark(
         _log_results(tracker, cfg, records, table2)
         for path in files.values():
             tracker.log_artifact(path, "report")
-        for m in manifests:
-            from atdrone.resolve import weights_manifest
+        from atdrone.resolve import weights_checkpoint, weights_manifest
 
+        for m in manifests:  # the only models a benchmark registers: models:/atdrone-<name>@<method>-<task>
             tracker.log_artifact(weights_manifest(cfg.results, m["method"], m["task"]), f"weights/{m['method']}")
+            alias = f"{m['method']}-{m['task']}".replace(".", "_")
+            tags = {"method": m["method"], "task": m["task"], "benchmark": cfg.name, "seed": str(m["seed"])}
+            tracker.register_weights(
+                weights_checkpoint(cfg.results, m["method"], m["task"]), f"atdrone-{cfg.name}", alias, tags
+            )
     if progress:
         print(f"[{cfg.name}] report: {cfg.results / 'report.md'}; MLflow run {run_id}", flush=True)
     return {"records": records, "files": files, "weights": manifests, "mlflow_run_id": run_id}
@@ -141,7 +146,7 @@ def _log_results(tracker: Any, cfg: BenchmarkConfig, records: Sequence[dict[str,
     tracker.log_metrics(metrics, step=0, once=True)
 
 
-def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool) -> list[dict[str, Any]]:
+def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool, parent_run: str) -> list[dict[str, Any]]:
     """Run every cell not yet done on the cluster, as many at once as its CPUs hold; every record, in grid
     order. A failed cell does not stop the others; the job then fails naming it (run again to retry)."""
     import ray
@@ -173,7 +178,7 @@ def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool) -> list[
             options = task.options(
                 num_cpus=1 if cell.kind == "floor" else 0, scheduling_strategy="SPREAD", name=cell.name
             )
-            running[options.remote(cfg, cell, tracking_uri)] = (cell, need(cell), time.monotonic())
+            running[options.remote(cfg, cell, tracking_uri, parent_run)] = (cell, need(cell), time.monotonic())
             held += need(cell)
         ready, _ = ray.wait(list(running), num_returns=1, timeout=10.0)
         for ref in ready:

@@ -153,6 +153,7 @@ def run_experiment(
     progress: bool = True,
     num_cpus: int | None = None,
     stop_after: int | None = None,
+    parent_run: str | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) an experiment to ``cfg.generations``; returns the final summary.
 
@@ -163,7 +164,8 @@ def run_experiment(
     a run is refused without ``resume``; a resume with a different experiment
     (:data:`RESUME_MAY_CHANGE` aside), beside a live driver, or whose registry or
     checkpoints disagree with its state file is refused before Ray starts. ``stop_after``:
-    stop once this many generations are complete (for tests of resume).
+    stop once this many generations are complete (for tests of resume). ``parent_run``: the
+    MLflow run the run's own is nested under (a benchmark's), in the same experiment.
     """
     with _sigterm_as_interrupt():
         run = open_run(cfg, resume)
@@ -171,7 +173,7 @@ def run_experiment(
             done = _completed(run, cfg, tracking_uri)
             if done is not None:
                 return done
-            return _run(cfg, run, address, tracking_uri, progress, num_cpus, stop_after)
+            return _run(cfg, run, address, tracking_uri, progress, num_cpus, stop_after, parent_run)
         finally:
             run.close()
 
@@ -250,6 +252,7 @@ def _run(
     progress: bool,
     num_cpus: int | None,
     stop_after: int | None,
+    parent_run: str | None = None,
 ) -> dict[str, Any]:
     import ray
 
@@ -271,7 +274,7 @@ def _run(
         ray.get(registry.claim.remote(run.run_id, cfg.name))
         ray.get(registry.discard_generations.remote(cfg.name, run.start))  # what an interrupted generation left
         crew.start(run.saved.get("coordinator"))
-        summary = _generations(cfg, crew, tracking_uri, progress, stop_after)
+        summary = _generations(cfg, crew, tracking_uri, progress, stop_after, parent_run)
         ended = True
     finally:  # a run that failed ends its coordinator (and its workers); the registry's name is free for the next run
         _release(crew, registry, registry_name(cfg.name), ended, cpus)
@@ -304,7 +307,12 @@ def _completed(run: OpenRun, cfg: ExperimentConfig, tracking_uri: str | None) ->
 
 
 def _generations(
-    cfg: ExperimentConfig, crew: _Crew, tracking_uri: str | None, progress: bool, stop_after: int | None
+    cfg: ExperimentConfig,
+    crew: _Crew,
+    tracking_uri: str | None,
+    progress: bool,
+    stop_after: int | None,
+    parent_run: str | None = None,
 ) -> dict[str, Any]:
     """Ask the coordinator for the remaining generations, logging each; then the final evaluation."""
     import ray
@@ -321,7 +329,8 @@ def _generations(
     tags = run.tags(cfg.name)
     attempt = {**tags, "atdrone.attempt": uuid.uuid4().hex}  # this driver's nested runs
     name = f"{cfg.name}-{cfg.algorithm}"
-    with tracker.run(experiment, name, run_id=run.saved.get("mlflow_run_id"), tags=tags) as run_id:
+    nest = {"mlflow.parentRunId": parent_run} if parent_run else {}  # MLflow's own tag of a nested run
+    with tracker.run(experiment, name, run_id=run.saved.get("mlflow_run_id"), tags={**tags, **nest}) as run_id:
         # what a dead attempt logged of generations it never saved: they are trained and logged again
         forgotten = tracker.forget_runs(experiment, tags, "atdrone.generation", run.saved.get("logged", start), run_id)
         killed = tracker.end_stale_runs(experiment, tags, keep=run_id)  # nested runs of an older layout

@@ -87,6 +87,8 @@ class ExperimentConfig:
     learner's update on the CPU (the rollout workers are idle while it runs, as in the
     local trainer's update_threads). experiment: the MLflow experiment
     (default: the config's own name, kept when a run is renamed with an override).
+    register: register the best member as a version of the model ``atdrone-<experiment>``
+    (a benchmark's cells do not: the benchmark registers only the weights it publishes).
     """
 
     name: str
@@ -107,6 +109,7 @@ class ExperimentConfig:
     learner_gpus: float = 0.0
     learner_threads: int = 2
     experiment: str = field(default="", metadata=OPTIONAL)
+    register: bool = True
     section: dict[str, Any] = field(default_factory=dict)
 
     def algorithm_config(self) -> Any:

@@ -171,7 +171,7 @@ def finish(tracker: Any, coordinator: Any, registry: Any, cfg: ExperimentConfig,
         "episodes per member and zoo"
     )
     tracker.describe(population_markdown(rows, title))
-    model = _log_best(tracker, best, score, run_dir, cfg)
+    model = _log_best(tracker, best, score, run_dir, cfg) if cfg.register else ""
     budget = ray.get(coordinator.state.remote())["budget"]
     write_json(run_dir / SUMMARY_FILE, {"best": best, "selected_on": cfg.select_zoo, "budget": budget, "model": model})
     return {"population": table, "best": best, "budget": budget, "model": model}
@@ -227,8 +227,12 @@ def format_summary(cfg: ExperimentConfig, summary: dict[str, Any], tracking_uri:
             + f"; run directory: {summary['run_dir']}",
             "budget: " + ", ".join(f"{k.replace('_', ' ')} {v:,}" for k, v in summary.get("budget", {}).items()),
             f"registry: atdrone registry --db {summary['registry']} list",
-            f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion = version "
-            f"{champion_version(model_name(cfg), tracking_uri) or 'none'}; {ui_model_link(model_name(cfg))})",
+            (
+                f"model: {summary.get('model', '')} (champion: models:/{model_name(cfg)}@champion = version "
+                f"{champion_version(model_name(cfg), tracking_uri) or 'none'}; {ui_model_link(model_name(cfg))})"
+                if cfg.register
+                else "model: none registered (register: false)"
+            ),
             f"MLflow: experiment {cfg.experiment or cfg.name!r}, run {summary['mlflow_run_id']} at {tracking_uri}; "
             f"browse with: mlflow ui --backend-store-uri {tracking_uri}",
         ]
