@@ -289,6 +289,15 @@ def test_whole_flight_rules_land_everyone(changes: dict[str, Any], rule: str) ->
     assert list(d.action) == [Action.LAND, Action.LAND] and rules(d) == {rule}
 
 
+def test_an_onboard_estimate_off_its_pose_for_the_hold_time_lands_that_drone_only() -> None:
+    """The second opinion: cf0's estimate has been off its pose for estimate_hold s, cf1's for less."""
+    hold = CFG.estimate_hold
+    d = shield(tick(TWO_APART, estimate_off=np.array([hold, hold - 0.05])), CFG)
+    assert d.action[0] == Action.LAND and rules(d, "cf0") == {"estimate_off"}
+    assert "estimate_off" not in rules(d, "cf1") and d.action[1] != Action.LAND
+    assert "estimate_off" not in rules(shield(tick(TWO_APART), CFG))  # no estimate logged: nothing judged
+
+
 def test_low_battery_lands_that_drone() -> None:
     d = shield(tick(TWO_APART, battery=np.array([3.3, np.nan])), CFG)
     assert d.action[0] == Action.LAND and rules(d, "cf0") == {"battery"}

@@ -39,6 +39,7 @@ FAULT_KINDS = (
     "mocap_freeze",
     "link_loss",
     "link_dropout",
+    "pose_blocked",
     "drift",
     "low_battery",
     "policy_stall",
@@ -132,7 +133,9 @@ class Fault:
     kind: mocap_dropout (``drone`` or the whole system when empty, for ``duration`` s),
     mocap_freeze (frames keep arriving with ``drone``'s pose, or every body's when empty,
     as it was, for ``duration`` s), link_loss (``drone``, for good), link_dropout
-    (``drone``'s link carries nothing either way for ``duration`` s), drift (``drone``
+    (``drone``'s link carries nothing either way for ``duration`` s), pose_blocked (no
+    motion-capture pose reaches ``drone``'s estimator for ``duration`` s, every other packet
+    does: it dead-reckons and drifts), drift (``drone``
     pushed by ``accel`` m/s^2), low_battery (``drone`` at ``volts``), policy_stall (the
     policy takes ``duration`` s), loop_hang (the loop thread hangs ``duration`` s),
     host_pause (the whole ground-station process is stopped, SIGSTOP, for ``duration``
@@ -145,6 +148,7 @@ class Fault:
         "mocap_freeze",
         "link_loss",
         "link_dropout",
+        "pose_blocked",
         "drift",
         "low_battery",
         "policy_stall",
@@ -276,7 +280,7 @@ def validate(cfg: DeployConfig) -> None:
     for i, f in enumerate(cfg.faults):
         if f.drone and f.drone not in names:
             raise ConfigError(f"faults[{i}].drone", f"no drone {f.drone!r} (drones: {', '.join(names)})")
-        if f.kind in ("link_loss", "link_dropout", "drift", "low_battery") and not f.drone:
+        if f.kind in ("link_loss", "link_dropout", "pose_blocked", "drift", "low_battery") and not f.drone:
             raise ConfigError(f"faults[{i}].drone", f"a {f.kind} fault names its drone")
     lo, hi = cfg.shield.z_limits
     if not lo <= cfg.flight_height <= hi:

@@ -289,6 +289,8 @@ def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap
             fire = partial(fleet.cut_link, f.drone)
         elif f.kind == "link_dropout":
             fire = partial(fleet.cut_link, f.drone, f.duration)
+        elif f.kind == "pose_blocked":
+            fire = partial(fleet.block_poses, f.drone, f.duration)
         elif f.kind == "drift":
             fire = partial(fleet.push, f.drone, np.array(f.accel))
         elif f.kind == "low_battery":

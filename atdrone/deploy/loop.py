@@ -147,6 +147,7 @@ class Flight(Episodes):
         self.ended: dict[str, str] = {}  # how each drone ended (after run)
         self.valid_pos = np.full((D, 3), np.nan)  # each drone's last valid (known, fresh) position
         self.valid_t = np.full(D, -np.inf)  # and when it was measured (clock)
+        self.off_since = np.full(D, np.inf)  # clock time each drone's onboard estimate left its pose (inf: it agrees)
         self.grow = np.zeros(D)  # m each drone's separation ellipsoid was grown by last tick (no valid pose)
 
     # ------------------------------------------------------------------ poses
@@ -312,9 +313,21 @@ class Flight(Episodes):
             obstacles=self.obstacles,
             last_pos=self.valid_pos,
             grow=np.where(physical, grow, 0.0),
+            estimate_off=self._estimate_off(pos, valid & airborne, now),
         )
         self.grow = inp.grow if inp.grow is not None else np.zeros(len(self.names))
         return shield(inp, self.shield_cfg)
+
+    def _estimate_off(self, pos: np.ndarray, judged: np.ndarray, now: float) -> np.ndarray:
+        """Per drone, how long (clock s) its logged onboard estimate has been more than the shield's
+        ``estimate_tolerance`` from its fresh pose (0: it agrees, or it is not judged: not airborne, no pose or no
+        estimate)."""
+        estimates = self.bridge.estimates()
+        est = np.array([estimates.get(n, (np.nan,) * 4)[:3] for n in self.names], dtype=np.float64)
+        apart = np.linalg.norm(est - pos, axis=1)
+        off = judged & np.isfinite(apart) & (apart > self.shield_cfg.estimate_tolerance)
+        self.off_since = np.where(off, np.where(np.isfinite(self.off_since), self.off_since, now), np.inf)
+        return np.where(off, now - self.off_since, 0.0)
 
     def _velocity(self, pos: np.ndarray, age: np.ndarray) -> np.ndarray:
         """Velocities (D, 3) from the last two ticks' fresh poses (NaN where unknown), for the shield's

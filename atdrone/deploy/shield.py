@@ -46,6 +46,9 @@ Rules (``rule`` names as they appear in the flight log):
   (the ground station stalled, not N radios) -> every drone holds; still silent
   ``link_stall`` s later -> all land; nobody is marked lost. ``locked``: a drone's supervisor reports it locked (its
   emergency stop fired) -> it is STOPPED and every other drone lands.
+- ``estimate_off``: a drone's onboard state estimate more than ``estimate_tolerance`` from its
+  motion-capture pose for ``estimate_hold`` s (the second opinion: its poses no longer reach
+  its estimator, or the estimator diverged; it flies on a belief) -> that drone lands.
 - ``battery``: below ``min_battery`` -> that drone lands.
 - ``signal``: SIGINT/SIGTERM -> all land.
 
@@ -102,6 +105,8 @@ class ShieldConfig:
     link_timeout: float = field(default=0.5, metadata=_check(_positive))  # s without a packet -> lost
     link_stall: float = field(default=0.5, metadata=_check(_positive))  # s of every link silent, held: then land
     min_battery: float = field(default=3.4, metadata=_check(_positive))  # V
+    estimate_tolerance: float = field(default=0.25, metadata=_check(_positive))  # m onboard estimate vs pose
+    estimate_hold: float = field(default=0.5, metadata=_check(_positive))  # s that far apart -> land
 
 
 @dataclass(frozen=True)
@@ -136,6 +141,7 @@ class ShieldInput:
     links_silent: float = 0.0  # s every link has been silent together (0: some link is heard)
     last_pos: np.ndarray | None = None  # (D, 3) each drone's last valid position (NaN: never)
     grow: np.ndarray | None = None  # (D,) m a drone without a valid pose may have flown since (0: it has one)
+    estimate_off: np.ndarray | None = None  # (D,) s the onboard estimate has been off its pose (0: it agrees)
 
 
 @dataclass(frozen=True)
@@ -294,6 +300,10 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
             fire(everyone, Action.LAND, "all_stale", "no fresh pose of any drone")
     else:
         fire(stale, Action.LAND, "stale_pose", f"no fresh pose for {cfg.stale_pose} s")
+    if inp.estimate_off is not None:
+        off = phys & known & (np.asarray(inp.estimate_off, dtype=np.float64) >= cfg.estimate_hold)
+        why = f"its onboard estimate is more than {cfg.estimate_tolerance} m from its pose"
+        fire(off, Action.LAND, "estimate_off", why)
     lo, hi = geofence(inp.arena, cfg.margin)
     outside = (
         phys & known & (((pos[:, :2] < lo - cfg.outside_tolerance) | (pos[:, :2] > hi + cfg.outside_tolerance)).any(1))

@@ -81,6 +81,7 @@ class SimFleet:
             s.setblocking(False)
             self._socks[n] = s
         self._taking = {n: threading.Lock() for n in names}  # one reader of a drone's socket at a time, in order
+        self._poses_blocked = dict.fromkeys(names, -math.inf)  # clock time until which no pose reaches a drone
         self.radio = (  # packets per clock second
             SimRadio(packet_rate * clock.rate, loss=radio_loss, retries=radio_retries, seed=seed) if radio else None
         )
@@ -174,6 +175,12 @@ class SimFleet:
         if self.radio is None:
             raise RuntimeError("this fleet has no radio model (radio=False)")
         self.radio.jam(seconds)
+
+    def block_poses(self, name: str, seconds: float) -> None:
+        """No motion-capture pose reaches the drone's estimator for ``seconds`` (clock): every other packet does
+        (a ground station sending another body's stream, a localization port starved); it dead-reckons."""
+        with self._lock:
+            self._poses_blocked[name] = self.clock.now() + seconds
 
     def push(self, name: str, accel: np.ndarray) -> None:
         """A wind push: an extra acceleration (3,) m/s^2 on the drone while its motors spin."""
@@ -286,6 +293,10 @@ class SimFleet:
                 d.zero_thrust()
             return []
         if port == crtp.LOCALIZATION:
+            pose = ch == crtp.LOC_POSITION or (ch == crtp.LOC_GENERIC and bool(p) and p[0] == crtp.LOC_EXT_POSE)
+            if pose and now < self._poses_blocked[d.name]:
+                d.counts["pose_blocked"] += 1
+                return []
             return self._localization(d, ch, p, now)
         if port == crtp.SETPOINT_HL:
             cmd = crtp.decode_high_level(p)

@@ -189,6 +189,9 @@ class FleetProcess:
     def cut_link(self, name: str, seconds: float | None = None) -> None:
         self._call("cut_link", name, seconds)
 
+    def block_poses(self, name: str, seconds: float) -> None:
+        self._call("block_poses", name, float(seconds))
+
     def push(self, name: str, accel: np.ndarray) -> None:
         self._call("push", name, np.asarray(accel, dtype=np.float64))
 
