@@ -161,7 +161,7 @@ def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool, parent_r
     walls: list[float] = []
     if progress:
         print(f"[{cfg.name}] {len(grid)} cells: {len(done)} done, {len(todo)} to run", flush=True)
-    shown = time.monotonic()
+    shown: tuple[int, int, int] | None = None  # the counts last printed
     needs: dict[str, int] = {}  # CPUs per method (every cell of a method has the same workers)
 
     def need(cell: Cell) -> int:
@@ -192,9 +192,10 @@ def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool, parent_r
             _write_json(cell_path(cfg, cell), record)
             done[cell.name] = record
             walls.append(time.monotonic() - started)
-        if progress and (ready or time.monotonic() - shown >= 60):
-            print(f"[{cfg.name}] {_progress_line(len(done), len(running), len(todo), walls, total_cpus)}", flush=True)
-            shown = time.monotonic()
+        counts = (len(done), len(running), len(todo))
+        if progress and counts != shown:  # a line only when a cell started or ended
+            print(f"[{cfg.name}] {_progress_line(*counts, walls, total_cpus)}", flush=True)
+            shown = counts
     if failed:
         raise RunError(f"{len(failed)} cell(s) failed: {'; '.join(failed)}; run the benchmark again to retry them")
     return [done[c.name] for c in grid]
