@@ -113,6 +113,8 @@ def test_a_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_un
     nested = client.search_runs([experiment], f"tags.`mlflow.parentRunId` = '{parent}'")
     assert {r.info.run_name for r in nested} >= {"killed-sp-4p2e1o-s0-sp", "killed-sp-4p2e1o-s1-sp"}
     assert {m.name for m in client.search_registered_models()} == {"atdrone-killed", "atdrone-whole"}
+    versions = client.search_model_versions("name = 'atdrone-killed'")
+    assert {v.tags.get("alias") for v in versions} == {"sp-4p2e1o"}  # no cell's own best member among them
     published = client.get_model_version_by_alias("atdrone-killed", "sp-4p2e1o")
     assert published.tags["method"] == "sp" and published.tags["task"] == "4p2e1o"
 
