@@ -20,10 +20,11 @@ from atdrone.deploy.landing import Landing
 from atdrone.deploy.sequence import Sequencing
 from atdrone.deploy.shield import HOLD_MARGIN, Action, ShieldConfig, ShieldDecision, geofence
 from atdrone.deploy.team import PolicyRunner, Team
-from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT, EvaderMove, evader_step, judge
+from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT
 from atdrone.envs.evaders import EscapeParams
 from atdrone.envs.kinematics import advance, turn
 from atdrone.envs.observation import Arena, Poses
+from atdrone.envs.rules import EvaderMove, evader_step, judge
 
 OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
 LEASH = 0.15  # m: a reference never runs further ahead of its drone than this

@@ -165,7 +165,7 @@ def ground_positions(cfg: DeployConfig, task: TaskConfig, seed: int) -> np.ndarr
     """Where the simulated drones stand before takeoff: a spawn draw of the task whose drones are clear of each
     other's separation ellipsoids (z = 0)."""
     from atdrone.deploy.transit import separated_spawn
-    from atdrone.envs.core import spawn
+    from atdrone.envs.rules import spawn
 
     rng = np.random.default_rng(seed)
     pursuers = cfg.role_names("learner") + cfg.role_names("partner")

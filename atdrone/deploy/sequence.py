@@ -31,8 +31,8 @@ from atdrone.deploy.shield import (
     push_out_of_obstacles,
 )
 from atdrone.deploy.transit import MARGIN, Transit, TransitBlocked, plan_transit, separated_spawn
-from atdrone.envs.core import spawn
 from atdrone.envs.geometry import Geometry
+from atdrone.envs.rules import spawn
 
 ARRIVED = 0.05  # m: a transit is over when every drone is this close to its target
 SPAWN_DRAWS = 5  # spawn draws tried before a blocked transit ends the flight

@@ -32,7 +32,8 @@ from atdrone.envs.streams import EVENT_DRAWS, RowStream, fold
 
 if TYPE_CHECKING:
     from atdrone.config import TaskConfig
-    from atdrone.envs.core import Judgement, PursuitState
+    from atdrone.envs.core import PursuitState
+    from atdrone.envs.rules import Judgement
 
 NONE, SWAP, DROP, JOIN = 0, 1, 2, 3
 EVENT_KINDS = ("none", "swap", "drop", "join")

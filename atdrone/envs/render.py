@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from atdrone.envs.core import BatchedPursuit, PursuitState, judge
+from atdrone.envs.core import BatchedPursuit, PursuitState
+from atdrone.envs.rules import judge
 from atdrone.fileio import atomic_write
 
 PURSUER_COLOR = "#1f5fbf"
