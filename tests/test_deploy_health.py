@@ -150,16 +150,21 @@ def _cut_report(heights: list[float], state: str, pauses: int = 0) -> tuple[floa
     from atdrone.deploy.landing import RECENT, Landing
 
     seen = deque(((z, state, pauses) for z in heights), maxlen=RECENT)
-    fake = SimpleNamespace(recent={"cf1": seen}, last_seen={"cf1": heights[-1]}, state={"cf1": "stopped"})
+    aloft = {"cf1": max(heights)} if state in ("taking_off", "flying") else {}
+    fake = SimpleNamespace(recent={"cf1": seen}, aloft=aloft, last_seen={"cf1": heights[-1]}, state={"cf1": "stopped"})
     return Landing._cut_at(fake, "cf1")  # type: ignore[arg-type]
 
 
 def test_a_drone_that_fell_before_the_report_is_cut_in_the_air_whether_flying_or_taking_off() -> None:
     """The supervisor's report comes ticks after the cut; by then a falling drone lies on the floor. A drone
     that was taking off or flying at 0.5 m is reported cut at 0.5 m, one still on the floor at the floor."""
+    from atdrone.deploy.landing import RECENT
+
     fell = [0.5, 0.5, 0.5, 0.4, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
     assert _cut_report(fell, "flying") == (0.5, "flying")
     assert _cut_report(fell, "taking_off") == (0.5, "taking_off")
     assert _cut_report([0.0] * 10, "taking_off")[0] < 0.05
+    # the report held back by a silent link until the ticks kept hold only the floor: still its height aloft
+    assert _cut_report([0.5] * 5 + [0.0] * (2 * RECENT), "flying") == (0.5, "flying")
     # a landing drone near the floor stays where it was two ticks back (it was coming down anyway)
     assert _cut_report([0.3, 0.2, 0.1, 0.02, 0.0, 0.0], "landing")[0] < 0.05

@@ -77,6 +77,7 @@ class Landing:
     cut: dict[str, tuple[float, str]]
     last_seen: dict[str, float]
     recent: dict[str, deque[tuple[float, str, int]]]
+    aloft: dict[str, float]
     link_health: LinkHealth
     grow: np.ndarray
     hold_at: np.ndarray
@@ -156,6 +157,10 @@ class Landing:
                 self.last_seen[n] = float(pos[i, 2])
                 entry = (float(pos[i, 2]), self.state[n], self.link_health.pauses)
                 self.recent.setdefault(n, deque(maxlen=RECENT)).append(entry)
+                if self.state[n] in ("taking_off", "flying"):  # the top of its current stretch in the air
+                    self.aloft[n] = max(self.aloft.get(n, 0.0), entry[0])
+                else:
+                    self.aloft.pop(n, None)
             fresh = self.links.silence[i] <= self.shield_cfg.link_timeout
             if fresh and cut_by_firmware(bits.get(n, 0)) and n not in self.cut and self.state[n] != "idle":
                 self.cut[n] = self._cut_at(n)
@@ -241,17 +246,16 @@ class Landing:
     def _cut_at(self, n: str) -> tuple[float, str]:
         """Where a drone the firmware cut was, and its state then: the supervisor's report arrives a tick or two
         after the cut (a drone falls 0.5 m in 0.3 s), so two ticks back; after a pause of the host (in the last
-        :data:`RECENT` ticks), the tick before the pause, when the keep-alives last flowed."""
+        :data:`RECENT` ticks), the tick before the pause, when the keep-alives last flowed. A drone taking off or
+        flying found on the floor fell before the report came (a silent link can hold the report back for
+        longer than :data:`RECENT` ticks): the top of its last stretch in the air."""
         seen = list(self.recent.get(n, ()))
         if not seen:
             return self.last_seen.get(n, float("nan")), self.state[n]
         paused = [k for k in range(1, len(seen)) if seen[k][2] != seen[k - 1][2]]
         z, state, _ = seen[paused[-1] - 1] if paused else seen[max(0, len(seen) - 3)]
         if state in ("taking_off", "flying") and z < 0.05:  # it fell before the report came (or never rose)
-            up = 0  # the heights of its last stretch in the air, before any landing or earlier takeoff
-            while up < len(seen) and seen[len(seen) - 1 - up][1] in ("taking_off", "flying"):
-                up += 1
-            z = max(zs[0] for zs in seen[len(seen) - up :]) if up else z
+            z = max(z, self.aloft.get(n, z))  # the top of its last stretch in the air, however long ago
         return z, state
 
     # ------------------------------------------------------------ landing

@@ -17,7 +17,7 @@ Every tick (0.1 s of the flight's clock):
 6. the shield (:mod:`atdrone.deploy.shield`), then the bridge's mailboxes.
 
 Episodes end as in simulation (every evader captured, a collision by the task's
-distances, the horizon: :func:`~atdrone.envs.core.judge` on the measured poses) or
+distances, the horizon: :func:`~atdrone.envs.rules.judge` on the measured poses) or
 by the shield, which also ends the flight (``aborted`` holds the reason). A captured
 evader drone lands. Between episodes the drones fly to a spawn draw whose drones are
 clear of each other on straight lines scheduled by :func:`~atdrone.deploy.transit.plan_transit`,
@@ -144,6 +144,7 @@ class Flight(Episodes):
         self.cut: dict[str, tuple[float, str]] = {}  # drones whose motors were cut: height, state then
         self.last_seen: dict[str, float] = {}  # last measured height per drone
         self.recent: dict[str, deque[tuple[float, str, int]]] = {}  # per drone, its last ticks: height, state, pauses
+        self.aloft: dict[str, float] = {}  # per drone taking off or flying, the top of that stretch in the air
         self.ended: dict[str, str] = {}  # how each drone ended (after run)
         self.valid_pos = np.full((D, 3), np.nan)  # each drone's last valid (known, fresh) position
         self.valid_t = np.full(D, -np.inf)  # and when it was measured (clock)
