@@ -200,11 +200,39 @@ def report(tasks: list[str], seeds: list[int], episodes: int) -> None:
             "",
             f"Zoos 1-3 from easiest to hardest by SP's COL: ours {' < '.join(ours) or '-'}; "
             f"the paper's {' < '.join(theirs)}.",
+            *_swaps(task, ours, theirs, cells),
             "",
         ]
     _write(OUT / "report.json", doc)
     (OUT / "report.md").write_text("\n".join(md) + "\n")
     print(f"wrote {OUT / 'report.md'}")
+
+
+def _swaps(task: str, ours: list[str], theirs: list[str], cells: dict[str, list[dict]]) -> list[str]:
+    """For each pair of zoos that ours and the paper's orderings put the other way round: both gaps in COL and
+    the crash shares (who collided) that make ours."""
+    from atdrone.benchmark.paper import TABLE2
+
+    lines = []
+    for i, a in enumerate(ours):
+        for b in ours[i + 1 :]:  # ours: a easier than b
+            if theirs.index(a) < theirs.index(b):
+                continue
+            pa, pb = (TABLE2[task][z]["sp"]["COL"] for z in (a, b))
+            gap = pa[0] - pb[0]
+            noise = ", within one standard deviation over its seeds" if abs(gap) < max(pa[1], pb[1]) else ""
+
+            def mean(zoo: str, key: str) -> float:
+                return float(np.mean([x[key] for x in cells[zoo]]))
+
+            lines.append(
+                f"{a} and {b} swap places. The paper's COL: {pa[0]:.1f} ± {pa[1]:.1f} and {pb[0]:.1f} ± {pb[1]:.1f} "
+                f"({abs(gap):.1f} points apart{noise}); ours: {mean(a, 'COL'):.1f} and {mean(b, 'COL'):.1f}. "
+                f"With {b}, a crash involves SP's own drones in {mean(b, 'learner_crash'):.1f} % of episodes "
+                f"against {mean(a, 'learner_crash'):.1f} % with {a}; partners alone crash in "
+                f"{mean(b, 'partner_only_crash'):.1f} % against {mean(a, 'partner_only_crash'):.1f} %."
+            )
+    return lines
 
 
 def main() -> int:
