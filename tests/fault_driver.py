@@ -151,6 +151,7 @@ def serve() -> None:
     for line in sys.stdin:
         pid = os.fork()
         if pid == 0:
+            os.dup2(2, 1)  # the driver's own output (Ray's, MLflow's) to stderr: stdout carries exit statuses only
             code = 0
             try:
                 attempt(json.loads(line))

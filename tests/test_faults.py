@@ -162,12 +162,10 @@ FAULTY = {
 # resumed by the next entry's driver
 KILLS = [
     ("coordinator", "add_member", "before", 1, 0),  # generation 0: the first checkpoint written, its row not
-    ("coordinator", "finish_generation", "after", 1, 0),  # generation 0 complete in the registry, nothing logged
     ("driver", "update_member", "after", 1, 0),  # generation 0 half logged: a learner's nested run RUNNING
     ("driver", "file:service_state.json", "before", 1, 0),  # generation 0 fully logged, not saved
     ("coordinator", "add_match", "after", 1, 1),  # generation 1: its first match recorded
     ("driver", "tracker.log_dict", "after", 1, 1),  # generation 1's learner run begun; then the run is moved
-    ("driver", "tracker.register_checkpoint", "after", 1, 2),  # the best member registered, no summary yet
     ("driver", "file:summary.json", "after", 1, 2),  # the summary written, the parent run still RUNNING
 ]
 
@@ -266,9 +264,9 @@ def _same_as(reference: dict[str, Any], run_dir: Path, uri: str) -> None:
 def test_a_driver_killed_at_each_step_of_a_generation_and_resumed_ends_as_an_uninterrupted_run(
     local_ray, tmp_path, mlflow_store, reference
 ):
-    """One run is SIGKILLed at eight points of its life, each resumed by the next driver (joined to the same
+    """One run is SIGKILLed at six points of its life, each resumed by the next driver (joined to the same
     Ray): before and after registry writes of the coordinator and the driver, inside the MLflow logging of
-    a generation, before the state file, after the model registration and after the summary. Killed with a
+    a generation, before the state file and after the summary (its best member registered). Killed with a
     learner's MLflow run RUNNING, the run directory is moved and resumed from its new place. The last
     resume completes it. Registry, checkpoints, state, MLflow runs (names, statuses, parents, metric
     points, artifacts; no run left RUNNING or twice) and model versions equal those of an uninterrupted run
@@ -403,56 +401,54 @@ def _stop_when(proc: subprocess.Popen[str], ready: Any, timeout_s: float = 240.0
     return proc.communicate(timeout=180)
 
 
-@pytest.mark.parametrize("entry", ["atdrone train", "jobs/train.py"])
+def _registry_up(name: str) -> bool:
+    from atdrone.registry import REGISTRY_NAMESPACE
+
+    try:
+        ray.get_actor(f"registry-{name}", namespace=REGISTRY_NAMESPACE)
+    except ValueError:
+        return False
+    return True
+
+
 def test_sigterm_to_a_training_driver_ends_in_one_line_with_143_and_its_resume_equals_an_uninterrupted_run(
-    local_ray, tmp_path, mlflow_store, reference, entry
+    local_ray, tmp_path, mlflow_store, reference
 ):
-    """SIGTERM (`ray job stop`) once generation 0 is saved: the driver (joined to the session's Ray, whose
-    handlers ray.init replaced) ends its MLflow runs, says in its last line what it kept and how to resume, and
-    exits 143 with no traceback. The resume then ends as an uninterrupted run."""
+    """SIGTERM (`ray job stop`) to `atdrone train` once generation 0 is saved, then to `jobs/train.py --resume`
+    as soon as its run's registry actor is up: each driver (joined to the session's Ray, whose handlers ray.init
+    replaced) ends its MLflow runs, says in its last line what it kept and how to resume, and exits 143 with no
+    traceback. The last resume then ends as an uninterrupted run."""
     uri = mlflow_store(tmp_path / "mlflow.db")
     doc = {**FAULTY, "name": "faults_t", "out_dir": str(tmp_path / "out")}
     config = tmp_path / "faults_t.json"
     config.write_text(json.dumps(doc))
-    if entry == "atdrone train":
-        command = [sys.executable, "-m", "atdrone.cli", "train", str(config), "--address", local_ray, "--no-progress"]
-    else:
-        command = [sys.executable, "jobs/train.py", str(config), "--address", local_ray, "--tracking-uri", uri]
-    env = {**os.environ, "MLFLOW_TRACKING_URI": uri}
-    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     run_dir = tmp_path / "out" / "faults_t"
-    _, err = _stop_when(proc, lambda: _state(run_dir).get("logged", 0) >= 1)
-    assert proc.returncode == 143, err
-    assert "Traceback" not in err and "SIGTERM received" not in err, err
-    last = err.strip().splitlines()[-1]
-    prog = entry.split()[-1] if entry.startswith("jobs") else "atdrone train"
+    env = {**os.environ, "MLFLOW_TRACKING_URI": uri}
+    drivers = [
+        (
+            "atdrone train",
+            [sys.executable, "-m", "atdrone.cli", "train", str(config), "--address", local_ray, "--no-progress"],
+            lambda: _state(run_dir).get("logged", 0) >= 1,
+        ),
+        (
+            "jobs/train.py",
+            [sys.executable, "jobs/train.py", str(config), "--address", local_ray, "--tracking-uri", uri, "--resume"],
+            lambda: _registry_up("faults_t"),
+        ),
+    ]
     kept = (
         r"kept [12] completed generation\(s\) \(the registry, member checkpoints; the unfinished one is played again\)"
     )
-    assert re.fullmatch(rf"{re.escape(prog)}: interrupted; {kept} in \S+; resume with: .*--resume", last), last
-    _wait_for_the_dead_drivers_actors("faults_t")
+    for prog, command, ready in drivers:
+        proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _, err = _stop_when(proc, ready)
+        assert proc.returncode == 143, err
+        assert "Traceback" not in err and "SIGTERM received" not in err, err
+        last = err.strip().splitlines()[-1]
+        assert re.fullmatch(rf"{re.escape(prog)}: interrupted; {kept} in \S+; resume with: .*--resume", last), last
+        _wait_for_the_dead_drivers_actors("faults_t")
     run_experiment(load_experiment(doc), tracking_uri=uri, resume=True, progress=False)
     _same_as(reference, run_dir, uri)
-
-
-def test_sigterm_to_a_benchmark_ends_in_one_line_with_143(local_ray, tmp_path, mlflow_store):
-    """`atdrone benchmark` stopped by SIGTERM while its first cell trains: one last line (cells kept, the resume
-    command), exit 143, no traceback."""
-    from conftest import tiny_benchmark
-
-    config = tmp_path / "bench.json"
-    config.write_text(json.dumps(tiny_benchmark(tmp_path, "term_b")))
-    env = {**os.environ, "MLFLOW_TRACKING_URI": mlflow_store(tmp_path / "mlflow.db")}
-    command = [sys.executable, "-m", "atdrone.cli", "benchmark", str(config), "--address", local_ray, "--no-progress"]
-    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    _, err = _stop_when(proc, lambda: any((tmp_path / "bench").rglob("service_state.json")))
-    assert proc.returncode == 143, err
-    assert "Traceback" not in err and "SIGTERM received" not in err, err
-    last = err.strip().splitlines()[-1]
-    assert re.fullmatch(
-        r"atdrone benchmark: interrupted; kept 0 finished cell\(s\) of \d+ .* resume with: atdrone benchmark \S+ .*",
-        last,
-    ), last
 
 
 # ------------------------------------------------------------------ a learner and the coordinator killed
