@@ -1,8 +1,8 @@
-"""The benchmark job through the real service: a driver on the session's Ray SIGKILLed after its first cell is
-finished by a second invocation that runs only the missing cells, and reports byte for byte what an
-uninterrupted run of the same grid reports. That reference (``atdrone benchmark`` too) runs on a local two-node
-Ray cluster (ray.cluster_utils.Cluster, one CPU per node), where its two training cells run at once, one on
-each node."""
+"""The benchmark job through the real service: a driver on the session's Ray stopped by SIGTERM while its first
+cell trains (one last line, exit 143), resumed and SIGKILLed after its first cell, is finished by a third
+invocation that runs only the missing cells and reports byte for byte what an uninterrupted run of the same grid
+reports. That reference (``atdrone benchmark`` too) runs on a local two-node Ray cluster
+(ray.cluster_utils.Cluster, one CPU per node), where its two training cells run at once, one on each node."""
 
 from __future__ import annotations
 
@@ -72,23 +72,39 @@ def _report(results: Path, name: str) -> dict[str, Any]:
     return {"text": text, "budget": budget, **frames}
 
 
-def test_a_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_uninterrupted_one_on_two_nodes(
+def test_a_stopped_then_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_uninterrupted_one(
     local_ray, tmp_path, mlflow_store, capsys
 ):
     uri = mlflow_store(tmp_path / "mlflow.db")
     whole, killed = tiny_benchmark(tmp_path, "whole"), tiny_benchmark(tmp_path, "killed")
     del whole["max_parallel"]  # cells as many at once as the cluster's CPUs allow: one on each node
     reference = _benchmark(whole, tmp_path, uri)  # on two nodes, beside the killed one
-    victim = _benchmark(killed, tmp_path, uri, address=local_ray)
     folder = tmp_path / "bench" / "killed"
     first = folder / "cells" / "sp-4p2e1o-s0.json"
-    deadline = time.monotonic() + 480  # a hang guard: beside the reference's two-node cluster at the suite's start
-    while not first.exists():
-        assert victim.poll() is None, victim.communicate()[0][-3000:]
-        assert time.monotonic() < deadline, "the first cell never finished"
-        time.sleep(0.2)
-    os.kill(victim.pid, signal.SIGKILL)
-    victim.wait()
+
+    def stop_when(victim: subprocess.Popen[str], ready: Any, sig: int) -> str:
+        deadline = time.monotonic() + 480  # a hang guard: beside the reference's two-node cluster at the start
+        while not ready():
+            assert victim.poll() is None, victim.communicate()[0][-3000:]
+            assert time.monotonic() < deadline, "never got there"
+            time.sleep(0.2)
+        os.kill(victim.pid, sig)
+        return victim.communicate(timeout=180)[0]
+
+    # SIGTERM (`ray job stop`) while the first cell trains: one last line (cells kept, the resume command), 143
+    victim = _benchmark(killed, tmp_path, uri, address=local_ray)
+    out = stop_when(victim, lambda: any(folder.rglob("service_state.json")), signal.SIGTERM)
+    assert victim.returncode == 143, out[-3000:]
+    assert "Traceback" not in out and "SIGTERM received" not in out, out[-3000:]
+    last = out.strip().splitlines()[-1]
+    assert re.fullmatch(
+        r"atdrone benchmark: interrupted; kept 0 finished cell\(s\) of 3 .* resume with: atdrone benchmark \S+ .*",
+        last,
+    ), last
+    assert not first.exists()
+    # resumed, then SIGKILLed once its first cell is finished
+    victim = _benchmark(killed, tmp_path, uri, address=local_ray)
+    stop_when(victim, first.exists, signal.SIGKILL)
     kept = first.read_bytes()
     assert sorted(p.name for p in (folder / "cells").glob("*.json")) == ["sp-4p2e1o-s0.json"]  # killed mid-way
     parent = json.loads((folder / STATE_FILE).read_text())["mlflow_run_id"]
