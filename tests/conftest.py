@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import sys
 import time
@@ -27,6 +28,12 @@ _RAY_MODULES = (
     "test_teammate_service",
 )
 _FLIGHT_MODULES = ("test_deploy", "test_simfleet")
+
+# Every Ray a test starts (the session's, a test's head or cluster; each inherits this environment) starts a
+# worker process only for an actor or task that asks for one: no idle Python workers started ahead of time at
+# start-up and for the first driver, a second or two of CPU each that the suite's tests never use.
+os.environ.setdefault("RAY_enable_worker_prestart", "0")
+os.environ.setdefault("RAY_prestart_worker_first_driver", "0")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

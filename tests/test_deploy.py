@@ -540,9 +540,9 @@ def test_a_link_lost_for_good_gets_land_commands_until_the_end_and_is_reported_l
 def test_a_host_paused_past_the_dead_man_limit_is_cut_by_the_firmware(
     tmp_path: Path, registry_member: tuple[str, str], busy_host: None
 ) -> None:
-    """SIGSTOP for 0.7 wall seconds: 2.8 s of the drones' clock, past their 1 s emergency-stop watchdog
-    (docs/deploy.md, "The ground station's host"). The firmware cuts every motor; the job says which drones
-    were cut in the air, at what height, and exits non-zero. Nothing is judged lost."""
+    """SIGSTOP for 0.7 wall seconds: 1.4 s of the drones' clock (the shipped rate 2), past their 1 s
+    emergency-stop watchdog (docs/deploy.md, "The ground station's host"). The firmware cuts every motor; the
+    job says which drones were cut in the air, at what height, and exits non-zero. Nothing is judged lost."""
     result = fly(
         tmp_path, registry_member, horizon=80, faults=[{"kind": "host_pause", "at": FAULT_AT, "duration": 0.7}]
     )
