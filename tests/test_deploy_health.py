@@ -8,9 +8,9 @@ from typing import Any
 import numpy as np
 
 from atdrone.deploy import crtp
-from atdrone.deploy.landing import confirmed_down, cut_by_firmware
+from atdrone.deploy.landing import RECENT, confirmed_down, cut_by_firmware
 from atdrone.deploy.links import LinkHealth
-from atdrone.deploy.reactions import LANDING_COLUMN, Reaction, spare_landing, verdict
+from atdrone.deploy.reactions import LANDING_COLUMN, Reaction, Verdict, spare_landing, verdict
 from atdrone.deploy.shield import Action, ShieldConfig, ShieldInput, shield
 
 CFG = ShieldConfig()
@@ -158,8 +158,6 @@ def _cut_report(heights: list[float], state: str, pauses: int = 0) -> tuple[floa
 def test_a_drone_that_fell_before_the_report_is_cut_in_the_air_whether_flying_or_taking_off() -> None:
     """The supervisor's report comes ticks after the cut; by then a falling drone lies on the floor. A drone
     that was taking off or flying at 0.5 m is reported cut at 0.5 m, one still on the floor at the floor."""
-    from atdrone.deploy.landing import RECENT
-
     fell = [0.5, 0.5, 0.5, 0.4, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
     assert _cut_report(fell, "flying") == (0.5, "flying")
     assert _cut_report(fell, "taking_off") == (0.5, "taking_off")
@@ -168,3 +166,51 @@ def test_a_drone_that_fell_before_the_report_is_cut_in_the_air_whether_flying_or
     assert _cut_report([0.5] * 5 + [0.0] * (2 * RECENT), "flying") == (0.5, "flying")
     # a landing drone near the floor stays where it was two ticks back (it was coming down anyway)
     assert _cut_report([0.3, 0.2, 0.1, 0.02, 0.0, 0.0], "landing")[0] < 0.05
+
+
+class _Fleet:
+    """The bridge's supervisor bits per drone, and the emergency stops sent."""
+
+    def __init__(self) -> None:
+        self.bits: dict[str, int] = {}
+        self.stopped: list[str] = []
+
+    def supervisor(self) -> dict[str, int]:
+        return dict(self.bits)
+
+    def emergency_stop(self, names: list[str]) -> None:
+        self.stopped += names
+
+
+def test_a_drone_locked_before_its_link_is_heard_again_is_reported_cut_in_the_air() -> None:
+    """After a host pause the supervisor's locked bit can reach the shield (rule ``locked``: stop) while the
+    drone's link is not yet judged fresh; by then the drone lies on the floor. The job reports it cut in the
+    air at the height it flew at, not stopped on the ground."""
+    from types import SimpleNamespace
+
+    from atdrone.deploy.landing import Landing
+
+    flight = Landing.__new__(Landing)
+    fleet = _Fleet()
+    names = list(NAMES)
+    flight.bridge, flight.names, flight.shield_cfg = fleet, names, CFG  # type: ignore[assignment]
+    flight.state = dict.fromkeys(names, "flying")
+    flight.last_seen, flight.recent, flight.aloft, flight.cut, flight.landing_from = {}, {}, {}, {}, {}
+    flight.link_health = SimpleNamespace(pauses=0)  # type: ignore[assignment]
+    flight.links = SimpleNamespace(silence=np.zeros(3))  # type: ignore[assignment]
+    flight.speed, flight.aborted, flight.progress = np.zeros(3), "", lambda line: None
+    flight.reaction = Verdict(Reaction.HOLD, (), ())
+    pos = np.array(APART)
+    for _ in range(5):  # flying at 0.5 m
+        flight._react(shield(tick(pos), CFG), pos)
+    fleet.bits["c"] = 1 << crtp.BIT_LOCKED  # cut during the pause; it fell
+    floor = pos.copy()
+    floor[2, 2] = 0.0
+    flight.links = SimpleNamespace(silence=np.array([0.0, 0.0, 2 * CFG.link_timeout]))  # type: ignore[assignment]
+    for _ in range(2 * RECENT):  # a long while on the floor before the locked bit is read
+        flight._react(shield(tick(floor), CFG), floor)
+    decision = shield(tick(floor, locked=np.array([False, False, True])), CFG)
+    assert decision.action[2] == Action.STOP
+    flight._react(decision, floor)
+    assert fleet.stopped == ["c"] and flight.state["c"] == "stopped"
+    assert flight.endings()["c"] == "cut in the air at 0.50 m (flying)"

@@ -178,8 +178,11 @@ class Landing:
         stop = spare_landing(stop, self.state, where, self.landing_from)
         if stop:
             self.bridge.emergency_stop(stop)
-            for n in stop:
-                self.cut.setdefault(n, (self.last_seen.get(n, float("nan")), self.state[n]))
+            for n in stop:  # one its firmware locked already (the shield's `locked`, heard before its link is
+                # judged fresh again) fell before the report: where it was cut, as for a cut seen on a fresh link
+                if n not in self.cut:
+                    locked = cut_by_firmware(bits.get(n, 0))
+                    self.cut[n] = self._cut_at(n) if locked else (self.last_seen.get(n, float("nan")), self.state[n])
             self._set_state(stop, "stopped")
         # the reaction taken: a landing drone spared the stop is landing
         taken = decision.action.copy()
