@@ -125,7 +125,7 @@ def test_block_runs_as_written(block: Block, scratch: tuple[Path, dict[str, str]
         command = [sys.executable, "-c", block.text]
     else:
         command = ["bash", "-euo", "pipefail", "-c", block.text]
-    done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=110)
+    done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, (
         f"{block.name} failed ({done.returncode}):\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}"
     )
