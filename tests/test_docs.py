@@ -117,7 +117,7 @@ def scratch(tmp_path: Path) -> tuple[Path, dict[str, str]]:
     return tmp_path, env
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(310)
 @pytest.mark.parametrize("block", RUNNABLE, ids=lambda b: b.name)
 def test_block_runs_as_written(block: Block, scratch: tuple[Path, dict[str, str]]) -> None:
     cwd, env = scratch
