@@ -15,7 +15,8 @@ validation SUC is higher where the paired interval excludes 0, otherwise the one
 median wall time (equal results, less compute). The chosen setting goes into
 configs/benchmarks/paper_budget.json's ``experiment`` (``preset`` and every ``ppo`` key written
 out) by hand, with the summary committed beside it.
-Resumable: a run whose result file exists in --out is read back, never run again.
+Resumable: a run whose result file exists in --out is read back, never run again; a run killed before
+its end resumes from its last save (every 32 updates) in --out/runs.
 Usage: python benchmarks/ppo_setting.py [--task 4p2e1o] [--seeds 0 1 2 3 4] [--env-steps 1048576]
        [--episodes 500] [--setting paper=paper ...] [--minutes 0] [--out benchmarks/results/ppo_setting]
 """
@@ -38,6 +39,7 @@ from atdrone.config import ConfigError
 from atdrone.fileio import atomic_write_text
 from atdrone.learn.ppo import ppo_config
 
+SAVE_EVERY = 32  # updates between a run's saves
 SETTINGS = {"default": ("default", {}), "paper": ("paper", {})}
 
 
@@ -80,12 +82,20 @@ def run(name: str, preset: str, overrides: dict[str, Any], seed: int, args: argp
         }
     )
     trainer = Trainer(cfg)
+    # a killed run resumes from its last save (every SAVE_EVERY updates) and collects what the uninterrupted
+    # run would have (each save starts the next stretch alike); the wall seconds before the kill are kept
+    wall_path = trainer.run_dir / "wall.json"
+    resumed = trainer.resume()
+    before = float(json.loads(wall_path.read_text())["train_wall_s"]) if resumed and wall_path.is_file() else 0.0
     start = time.perf_counter()
     while trainer.env_steps < args.env_steps:
         trainer.update_once()
         if args.minutes and time.perf_counter() - start > 60 * args.minutes:
             break
-    train_s = time.perf_counter() - start
+        if trainer.updates % SAVE_EVERY == 0:
+            trainer.save()
+            atomic_write_text(wall_path, json.dumps({"train_wall_s": before + time.perf_counter() - start}))
+    train_s = before + time.perf_counter() - start
     result = evaluate(trainer.policy(), args.task, "validation", episodes=args.episodes, seeds=[EVAL_SEED + seed])
     doc = {
         "setting": name,
