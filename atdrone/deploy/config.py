@@ -15,6 +15,9 @@ Keys (every one documented on its dataclass below):
 - ``evaders``: ``"virtual"`` (simulated evaders the pursuers see, shown in the log) or
   ``"drones"`` (real drones flying the task's escape policy).
 - ``drones``: name, radio URI, rigid-body name and role of every drone.
+- ``backups``: drones waiting on the floor to take a partner slot whose drone was dropped
+  (its battery ran low or its link was lost): name, radio URI, rigid body and the partner
+  drones it may replace (``replaces``; every partner drone when empty).
 - ``flight_height``, ``backend`` (``sim`` or ``cflib``), ``mocap``, ``frame``,
   ``frame_reference`` (a marker the preflight checks the frame with), ``radio``, ``shield``,
   ``sim`` (the simulated fleet and mocap), ``faults`` (injected on the sim backend),
@@ -27,7 +30,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 from atdrone.config import ConfigError, TaskConfig, _check, _non_negative, _positive, check_task_field, load_config
 from atdrone.deploy.mocap import FrameTransform
@@ -81,6 +84,33 @@ class Drone:
     @property
     def rigid_body(self) -> str:
         return self.body or self.name
+
+
+@dataclass(frozen=True)
+class Backup:
+    """A backup drone: on the floor until a partner slot is dropped, then it takes off and takes that slot.
+
+    name, uri (cflib backend) and body (the rigid body; default: name) as for a drone; replaces: the partner
+    drones whose slot it may take (empty: any partner's). Backups are used in the order listed.
+    """
+
+    name: str
+    uri: str = field(default="", metadata={"empty_ok": True})
+    body: str = field(default="", metadata={"empty_ok": True})
+    replaces: tuple[str, ...] = ()
+
+    @property
+    def rigid_body(self) -> str:
+        return self.body or self.name
+
+
+class Aboard(NamedTuple):
+    """One physical drone of the flight, a backup's role ``backup``: what the backends and the loop need."""
+
+    name: str
+    role: str
+    uri: str
+    rigid_body: str
 
 
 @dataclass(frozen=True)
@@ -205,6 +235,7 @@ class DeployConfig:
     task: str
     member: MemberRef
     drones: tuple[Drone, ...]
+    backups: tuple[Backup, ...] = ()
     partners: Partners = field(default_factory=Partners)
     evaders: Literal["virtual", "drones"] = "virtual"
     name: str = "deploy"
@@ -235,6 +266,11 @@ class DeployConfig:
     def role_names(self, role: str) -> list[str]:
         """The drones of a role, in document order."""
         return [d.name for d in self.drones if d.role == role]
+
+    def fleet(self) -> list[Aboard]:
+        """Every physical drone: the drones in document order, then the backups."""
+        out = [Aboard(d.name, d.role, d.uri, d.rigid_body) for d in self.drones]
+        return out + [Aboard(b.name, "backup", b.uri, b.rigid_body) for b in self.backups]
 
 
 def task_of(cfg: DeployConfig) -> TaskConfig:
@@ -277,6 +313,8 @@ def validate(cfg: DeployConfig) -> None:
             "partners.members",
             f"one member per partner drone: {counts['partner']} drones, got {len(cfg.partners.members)}",
         )
+    _validate_backups(cfg)
+    names += [b.name for b in cfg.backups]
     for i, f in enumerate(cfg.faults):
         if f.drone and f.drone not in names:
             raise ConfigError(f"faults[{i}].drone", f"no drone {f.drone!r} (drones: {', '.join(names)})")
@@ -289,8 +327,36 @@ def validate(cfg: DeployConfig) -> None:
         raise ConfigError(
             "name", f"must be 1-64 letters, digits, '_', '.', '-' (not starting with those), got {cfg.name!r}"
         )
-    if cfg.frame_reference is not None and cfg.frame_reference.body in {d.rigid_body for d in cfg.drones}:
+    if cfg.frame_reference is not None and cfg.frame_reference.body in {d.rigid_body for d in cfg.fleet()}:
         raise ConfigError("frame_reference.body", f"{cfg.frame_reference.body!r} is a drone's rigid body")
+
+
+def _validate_backups(cfg: DeployConfig) -> None:
+    """Each backup: a drone of no other role, a radio URI on the cflib backend, a rigid body of its own, and
+    only partner drones to replace."""
+    roles: dict[str, str] = {d.name: d.role for d in cfg.drones}
+    partners = cfg.role_names("partner")
+    bodies = {d.rigid_body: d.name for d in cfg.drones}
+    if cfg.backups and not partners:
+        raise ConfigError("backups", f"task {task_of(cfg).name} has no partner slots for a backup to take")
+    for i, b in enumerate(cfg.backups):
+        if not NAME.match(b.name):
+            raise ConfigError(f"backups[{i}].name", f"must be 1-64 letters, digits, '_', '.', '-', got {b.name!r}")
+        if roles.get(b.name) == "backup":
+            raise ConfigError(f"backups[{i}].name", f"duplicate backup name {b.name!r}")
+        if b.name in roles:
+            why = f"{b.name!r} is already a {roles[b.name]} drone: a backup has no other role"
+            raise ConfigError(f"backups[{i}].name", why)
+        if cfg.backend == "cflib" and not b.uri:
+            raise ConfigError(f"backups[{i}].uri", "the cflib backend needs every backup's radio URI")
+        if b.rigid_body in bodies:
+            raise ConfigError(f"backups[{i}].body", f"rigid body {b.rigid_body!r} is already {bodies[b.rigid_body]}'s")
+        roles[b.name], bodies[b.rigid_body] = "backup", b.name
+        for name in b.replaces:
+            if name not in partners:
+                raise ConfigError(
+                    f"backups[{i}].replaces", f"no partner drone {name!r} (partner drones: {', '.join(partners)})"
+                )
 
 
 def load_deploy(path_or_doc: str | Path | Mapping[str, Any], **overrides: Any) -> DeployConfig:
