@@ -11,6 +11,10 @@ printed and logged is the rule (or rules) behind the most severe reaction, not t
 seen. A drone already landing under the onboard planner is not emergency-stopped unless
 it leaves its landing column (:data:`LANDING_COLUMN` from where its landing began): the
 planner brings it down more gently than a motor cut from any height.
+
+One exception to "any landing ends the flight": a partner drone (or a backup) whose battery
+runs low or whose link is lost is **dropped** alone (:func:`drops`): it lands (or, lost, is
+left to its firmware's watchdog), its slot is empty, and the others fly on.
 """
 
 from __future__ import annotations
@@ -80,6 +84,23 @@ def verdict(decision: ShieldDecision, airborne: np.ndarray) -> Verdict:
         {e.rule for e in decision.events if e.drone in names and severity(e.action) >= top and e.rule not in NOT_RULES}
     )
     return Verdict(reaction, tuple(rules), tuple(names))
+
+
+DROP_RULES = {int(Action.LAND): "battery", int(Action.LOST): "link_lost"}  # the faults that drop a drone alone
+
+
+def drops(decision: ShieldDecision, droppable: np.ndarray) -> dict[str, str]:
+    """The ``droppable`` (D,) drones this tick's ``decision`` lands for their own battery or lost link alone: no
+    other rule asked as much of them. Per drone, that rule (``battery`` or ``link_lost``)."""
+    out = {}
+    for i, n in enumerate(decision.names):
+        rule = DROP_RULES.get(int(decision.action[i]))
+        if not droppable[i] or rule is None:
+            continue
+        asked = {e.rule for e in decision.events if e.drone == n and severity(e.action) >= severity(Action.LAND)}
+        if asked == {rule}:
+            out[n] = rule
+    return out
 
 
 def spare_landing(

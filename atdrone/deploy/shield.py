@@ -42,7 +42,8 @@ Rules (``rule`` names as they appear in the flight log):
 - ``policy_stall``: the policy has been late for ``policy_stall`` s -> all land.
 - ``link_lost``: no packet from a drone for ``link_timeout`` (host pauses excluded:
   :mod:`atdrone.deploy.links`) -> that drone is LOST (the loop sends it the land command
-  every tick) and every other drone lands. ``links_silent``: every link silent together
+  every tick) and every other drone lands, unless the lost drone is one the flight drops
+  ``alone`` (a partner drone: the others fly on). ``links_silent``: every link silent together
   (the ground station stalled, not N radios) -> every drone holds; still silent
   ``link_stall`` s later -> all land; nobody is marked lost. ``locked``: a drone's supervisor reports it locked (its
   emergency stop fired) -> it is STOPPED and every other drone lands.
@@ -142,6 +143,7 @@ class ShieldInput:
     last_pos: np.ndarray | None = None  # (D, 3) each drone's last valid position (NaN: never)
     grow: np.ndarray | None = None  # (D,) m a drone without a valid pose may have flown since (0: it has one)
     estimate_off: np.ndarray | None = None  # (D,) s the onboard estimate has been off its pose (0: it agrees)
+    alone: np.ndarray | None = None  # (D,) bool: a lost link lands this drone alone (the flight drops it)
 
 
 @dataclass(frozen=True)
@@ -280,9 +282,11 @@ def shield(inp: ShieldInput, cfg: ShieldConfig) -> ShieldDecision:
         fire(everyone, Action.LAND if stalled else Action.HOLD, "links_silent", why)
     if lost.any():
         fire(lost, Action.LOST, "link_lost", f"no packet for more than {cfg.link_timeout} s")
-        fire(
-            ~lost, Action.LAND, "link_lost", f"link lost: {', '.join(n for n, x in zip(names, lost, strict=True) if x)}"
-        )
+        alone = np.zeros(D, dtype=bool) if inp.alone is None else np.asarray(inp.alone, dtype=bool)
+        landing_all = lost & ~alone  # a drone dropped alone leaves the others flying
+        if landing_all.any():
+            who = ", ".join(n for n, x in zip(names, landing_all, strict=True) if x)
+            fire(~lost, Action.LAND, "link_lost", f"link lost: {who}")
     locked = np.zeros(D, dtype=bool) if inp.locked is None else np.asarray(inp.locked, dtype=bool)
     if locked.any():
         fire(locked, Action.STOP, "locked", "the supervisor reports the drone locked (emergency stop)")
