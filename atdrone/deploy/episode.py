@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from atdrone.config import TaskConfig
+from atdrone.deploy.backup import Backups
 from atdrone.deploy.clock import Ticker
 from atdrone.deploy.flightlog import FlightLog
 from atdrone.deploy.landing import Landing
@@ -22,6 +23,7 @@ from atdrone.deploy.shield import HOLD_MARGIN, Action, ShieldConfig, ShieldDecis
 from atdrone.deploy.team import PolicyRunner, Team
 from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT
 from atdrone.envs.evaders import EscapeParams
+from atdrone.envs.events import absent_judgement, hide_absent, parked
 from atdrone.envs.kinematics import advance, turn
 from atdrone.envs.observation import Arena, Poses
 from atdrone.envs.rules import EvaderMove, evader_step, judge
@@ -62,7 +64,7 @@ def advance_reference(
     return new_heading, new_ref, (ref + new_ref) / 2, vel
 
 
-class Episodes(Landing, Sequencing):
+class Episodes(Backups, Landing, Sequencing):
     """Flying one episode (see the module docstring); the flight provides the ticks and the state."""
 
     team: Team
@@ -78,6 +80,7 @@ class Episodes(Landing, Sequencing):
     horizon: int
     episode: int
     episode_done: bool
+    pairs: np.ndarray
 
     def observations(
         self, pos_p: np.ndarray, heading: np.ndarray, pos_e: np.ndarray, captured: np.ndarray
@@ -93,7 +96,10 @@ class Episodes(Landing, Sequencing):
         P, E = len(self.pursuers), self.task.players.num_e
         heading = np.full(P, np.pi / 2)
         pos0, _, _ = self.measured()
-        ref = np.where(np.isfinite(pos0[:, :2]), pos0[:, :2], np.concatenate([spawn_p, spawn_e])[: len(self.names)])
+        ref = np.where(
+            np.isfinite(pos0[:, :2]), pos0[:, :2], self._slot_targets(spawn_p, spawn_e, np.zeros_like(pos0[:, :2]))
+        )
+        ev = self.evader_index
         ref_e = spawn_e.copy()  # the evaders' references (virtual evaders: their positions)
         head_e = np.full(E, np.pi / 2)
         lo, hi = self.escape.wander_steps
@@ -101,6 +107,7 @@ class Episodes(Landing, Sequencing):
         captured = np.zeros(E, dtype=bool)
         ret, steps, outcome = 0.0, 0, ""
         self.team.new_episode(self.rng)
+        self.team_changed = False
         prev_dist: np.ndarray | None = None
         held_for = np.zeros(E, dtype=bool)  # evader drones the shield held with a pursuer last tick
         while not outcome:
@@ -112,11 +119,19 @@ class Episodes(Landing, Sequencing):
                 float(np.nanmax(np.where(np.isfinite(age), age, np.nan))) if np.isfinite(age).any() else math.inf
             )
             c1 = time.perf_counter()
-            pos_p = _fill(pos[:P, :2], ref[:P])
-            pos_e = ref_e if not self.evader_drones else _fill(pos[P:, :2], ref[P:])
+            present = self.present.copy()
+            slot_pos = _fill(pos[self.slots, :2], ref[self.slots])
+            # an empty slot waits outside the arena, beyond every range, as a drone its drop event landed in training
+            pos_p = np.where(present[:, None], slot_pos, parked(P))
+            pos_e = ref_e if not self.evader_drones else _fill(pos[ev, :2], ref[ev])
             # the episode so far: capture and collision at the measured poses
             judged = judge(np.concatenate([pos_p, pos_e])[None], captured[None], self.judged_task, self.geometry)
+            if not present.all():  # an empty slot neither captures nor collides
+                judged = absent_judgement(judged, present[None], self.pairs)
             dist = judged.evader_distance[0]
+            if self.team_changed and prev_dist is not None:  # a changed team's approach starts from here
+                prev_dist = np.where(captured, 0.0, dist)
+            self.team_changed = False
             newly = (judged.captured[0] | held_for) & ~captured  # within the reach now, or held for it
             if prev_dist is not None:
                 ret += self._reward(prev_dist, dist, captured, newly, judged.collided[0])
@@ -131,23 +146,32 @@ class Episodes(Landing, Sequencing):
             elif steps >= self.horizon:
                 outcome = OUTCOMES[TIMEOUT]
             obs, poses = self.observations(pos_p, heading, pos_e, captured)
+            if not present.all():  # every observation masks an empty slot as a teammate beyond range
+                hide_absent(obs, present[None], E)
             c2 = time.perf_counter()
             actions = self.policy.act(self.shield_cfg.policy_late, obs, poses, self.learner_slots, self.partner_slots)
             c3 = time.perf_counter()
             vel = np.zeros((len(self.names), 3))
+            acting = self.slots[present]
+            idle = self._idle(acting)  # a dropped drone, a backup not yet flying to its slot: where it is
+            ref[idle] = np.where(np.isfinite(pos[idle, :2]), pos[idle, :2], ref[idle])
             setpoints = np.c_[ref, np.full(len(self.names), self.cfg.flight_height)]
             if actions is not None:
-                heading, ref_p, mid_p, vel_p = advance_reference(ref[:P], pos_p, heading, actions, self.arena, self.dt)
+                heading, ref_p, mid_p, vel_p = advance_reference(
+                    ref[self.slots], slot_pos, heading, actions, self.arena, self.dt
+                )
                 move = self._evaders(ref_e, head_e, pos_p, captured, wander_heading, wander_left)
                 head_e, wander_heading, wander_left = move.heading, move.wander_heading, move.wander_left
                 mid_e, vel_e = (ref_e + move.pos) / 2, (move.pos - ref_e) / self.dt
                 ref_e = move.pos
-                ref[:P] = ref_p
-                setpoints[:P, :2], vel[:P, :2] = mid_p, vel_p
+                ref[acting] = ref_p[present]
+                setpoints[acting, :2], vel[acting, :2] = mid_p[present], vel_p[present]
                 if self.evader_drones:
-                    ref[P:] = ref_e
-                    setpoints[P:, :2], vel[P:, :2] = mid_e, vel_e
-                    vel[P:][captured] = 0.0
+                    ref[ev] = ref_e
+                    setpoints[ev, :2], vel[ev, :2] = mid_e, vel_e
+                    vel[ev[captured]] = 0.0
+            for slot in self._tend_backups(pos, age, ref, setpoints, vel):  # a new drone faces +y, as it spawns
+                heading[slot] = np.pi / 2
             decision = self._shield(pos, age, setpoints, vel, self.policy.late_for())
             if actions is None and not (decision.action >= Action.LAND).any():
                 fence = geofence((self.geometry.width, self.geometry.height), self.shield_cfg.margin)
@@ -197,14 +221,16 @@ class Episodes(Landing, Sequencing):
         shield's look-ahead: the pursuer's own approach was about to bring it within the reach
         (:func:`capture_reach`). An evader running at a pursuer from further away is not captured."""
         out = np.zeros(len(captured), dtype=bool)
-        P = len(self.pursuers)
         if not self.evader_drones or decision.pairs is None:
             return out
         near = self.judged_task.task.capture_range + self.task.players.velocity_p * self.shield_cfg.lookahead
+        pursuer = np.zeros(len(self.names), dtype=bool)
+        pursuer[self.slots[self.present]] = True
+        evader = {int(k): j for j, k in enumerate(self.evader_index)}
         for a, b in decision.pairs:
-            lo, hi = min(a, b), max(a, b)
-            if lo < P <= hi and np.hypot(*(pos[lo, :2] - pos[hi, :2])) <= near:
-                out[hi - P] = True
+            for p, e in ((int(a), int(b)), (int(b), int(a))):
+                if pursuer[p] and e in evader and np.hypot(*(pos[p, :2] - pos[e, :2])) <= near:
+                    out[evader[e]] = True
         return out & ~captured
 
     def _evaders(

@@ -7,12 +7,15 @@ directory together, every file written atomically (a temp name, then a rename):
   ``episode``, ``step`` (-1 while the high-level commander flies), ``drone``, ``role``,
   ``x, y, z, yaw`` (measured, arena frame; NaN unknown), ``setpoint_x, setpoint_y,
   setpoint_z``, ``state`` (:data:`FLIGHT_STATES`), ``events`` (comma-joined shield rules,
-  ``fault:KIND`` notes and a ``pair:DRONE`` note per drone the separation rule held it
-  with, "" for none), ``battery`` (V) and ``latency_STAGE`` (seconds;
-  NaN on ticks without that stage).
+  ``fault:KIND`` notes, a ``pair:DRONE`` note per drone the separation rule held it
+  with, and the team's notes: ``dropped:RULE`` (a partner drone dropped alone),
+  ``backup_takeoff``, ``took_slot:SLOT`` and ``backup_gave_up``; "" for none), ``battery``
+  (V) and ``latency_STAGE`` (seconds; NaN on ticks without that stage).
 - ``episodes.parquet``: ``episode, outcome, steps, captured, reward, virtual_evaders``.
-- ``meta.json``: the config summary given to the log, the tick overruns and the arena
-  geometry (walls and obstacles), so the directory alone is enough for :func:`summarize`.
+- ``meta.json``: the config summary given to the log, the tick overruns, the arena
+  geometry (walls and obstacles) and the flight's ``team_changes`` (each partner drone
+  dropped alone and the backup that took its slot), so the directory alone is enough for
+  :func:`summarize`.
 - ``summary.json``: :func:`summarize` of the directory (non-finite numbers as null).
 - ``trajectories.png``: the arena, each drone's path, setpoints faint, shield events marked, and
   ``flight.gif``: a short animation (:mod:`atdrone.deploy.flightplot`).
@@ -43,7 +46,8 @@ OUTCOMES = ("captured", "collision", "timeout", "shield", "aborted")
 LATENCY_STAGES = ("mocap_age", "observe", "policy", "shield", "send", "tick")  # the usual order; others follow
 PERCENTILES = (50, 95, 99)
 PAIR = "pair:"  # an events note: the separation rule held this drone together with the named one
-NOTES = ("fault:", PAIR)  # events that are notes, not shield rules
+TEAM_NOTES = ("dropped:", "took_slot:", "backup_")  # a partner dropped alone, a backup's takeoff, its slot taken
+NOTES = ("fault:", PAIR, *TEAM_NOTES)  # events that are notes, not shield rules
 EXPERIMENT = "atdrone-deploy"
 FILES = ("flight.parquet", "episodes.parquet", "meta.json", "summary.json", "trajectories.png", "flight.gif")
 
@@ -301,7 +305,8 @@ def summarize(directory: Path) -> dict[str, Any]:
     ones, AST_std their sample std); interventions: rows (tick x drone) on which each
     shield rule acted; faults: injected faults by kind; latency: per stage over ticks;
     min_separation: the smallest distance between airborne physical drones;
-    battery_min: per physical drone (V).
+    battery_min: per physical drone (V); team_changes: each partner drone dropped alone (its slot, why, when)
+    and the backup that took its slot (when, its memory reset) or why none did.
     """
     flight, episodes, meta = _read(directory)
     physical = _physical(flight, meta)
@@ -329,6 +334,7 @@ def summarize(directory: Path) -> dict[str, Any]:
         "episodes_flown": int(meta.get("episodes_flown", len(episodes))),
         "mocap_callback_errors": int(meta.get("mocap_callback_errors", 0)),
         "battery_min": {str(k): float(v) for k, v in battery.items()},
+        "team_changes": list(meta.get("team_changes", [])),
     }
     summary["interventions_total"] = int(sum(summary["interventions"].values()))
     return summary
@@ -367,6 +373,7 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         "  battery min: "
         + (", ".join(f"{k} {_number(v, '.2f', ' V')}" for k, v in summary["battery_min"].items()) or "-"),
     ]
+    lines += [f"  team change: {team_change(c)}" for c in summary.get("team_changes", [])]
     latency = summary.get("latency", {})
     if latency:
         lines.append(f"  {'latency (ms)':<14}" + "".join(f"{f'p{q}':>9}" for q in PERCENTILES) + f"{'max':>9}")
@@ -377,6 +384,24 @@ def format_summary(summary: Mapping[str, Any]) -> str:
 
 
 # ------------------------------------------------------------------ MLflow
+def team_change(change: Mapping[str, Any]) -> str:
+    """One team change as text: the partner drone dropped, and what came of its slot."""
+    text = (
+        f"{change['drone']} (slot {change['slot']}) dropped at t = {_number(change['t'])} s in episode "
+        f"{int(change['episode']) + 1}: {change['why']}"
+    )
+    backup = change.get("backup")
+    if not backup:
+        return text + "; no backup, the slot stayed empty"
+    if change.get("took_slot_t") is not None:
+        reset = ", its memory reset" if change.get("memory_reset") else ""
+        return (
+            text + f"; backup {backup} took the slot at t = {_number(change['took_slot_t'])} s in episode "
+            f"{int(change['took_slot_episode']) + 1}{reset}"
+        )
+    return text + f"; backup {backup} did not take the slot ({change.get('backup_end') or 'the flight ended first'})"
+
+
 def _metric_name(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_\-./ ]", "_", text)
 

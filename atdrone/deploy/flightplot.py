@@ -93,7 +93,8 @@ def plot_trajectories(flight: pd.DataFrame, geometry: Mapping[str, Any], path: P
             ax.annotate(str(name), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=7)
         events = flight[flight["events"].astype(str) != ""]
         fault = events["events"].str.contains("fault:")
-        shield_rows = events[events["events"].str.replace(r"(fault|pair):[^,]*", "", regex=True).str.strip(",") != ""]
+        rules = events["events"].str.replace(r"(fault|pair|dropped|took_slot):[^,]*|backup_\w+", "", regex=True)
+        shield_rows = events[rules.str.strip(",") != ""]
         if len(shield_rows):
             ax.scatter(shield_rows.x, shield_rows.y, marker="x", color="black", s=22, zorder=8, label="shield")
         if fault.any():

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from atdrone.config import TaskConfig
+from atdrone.deploy.backup import backup_ground
 from atdrone.deploy.bridge import Bridge, CflibBridge
 from atdrone.deploy.clock import Clock, RealClock, ScaledClock
 from atdrone.deploy.config import DeployConfig, task_of
@@ -40,15 +41,7 @@ from atdrone.deploy.flightlog import FlightLog, log_to_mlflow, summarize
 from atdrone.deploy.gap import format_gap, simulation_gap
 from atdrone.deploy.loop import FaultClock, Flight, StopRequest, Team
 from atdrone.deploy.mocap import MocapSource, MotionCaptureSource, SimMocap
-from atdrone.deploy.preflight import (
-    Preflight,
-    check_estimates,
-    check_heading,
-    check_observation,
-    check_reference,
-    check_spawn,
-    spawn_regions,
-)
+from atdrone.deploy.preflight import Preflight, plan_text, run_preflight
 from atdrone.errors import UserError
 from atdrone.policies.base import Policy
 
@@ -166,7 +159,7 @@ class Backend:
 
 def ground_positions(cfg: DeployConfig, task: TaskConfig, seed: int) -> np.ndarray:
     """Where the simulated drones stand before takeoff: a spawn draw of the task whose drones are clear of each
-    other's separation ellipsoids (z = 0)."""
+    other's separation ellipsoids (z = 0); the backups along the fence (:func:`backup_ground`)."""
     from atdrone.deploy.transit import separated_spawn
     from atdrone.envs.rules import spawn
 
@@ -181,7 +174,8 @@ def ground_positions(cfg: DeployConfig, task: TaskConfig, seed: int) -> np.ndarr
     pos_p, pos_e = separated_spawn(draw, cfg.shield.drone_radius, cfg.shield.drone_half_height)
     xy = {n: pos_p[i] for i, n in enumerate(pursuers)}
     xy.update({n: pos_e[j] for j, n in enumerate(evaders)})
-    return np.array([[*xy[d.name], 0.0] for d in cfg.drones])
+    xy.update(zip([b.name for b in cfg.backups], backup_ground(task, cfg.shield, len(cfg.backups)), strict=True))
+    return np.array([[*xy[d.name], 0.0] for d in cfg.fleet()])
 
 
 def _bridge(cfg: DeployConfig, uris: dict[str, str], clock: Clock) -> CflibBridge:
@@ -202,7 +196,7 @@ def _bridge(cfg: DeployConfig, uris: dict[str, str], clock: Clock) -> CflibBridg
 @contextmanager
 def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
     """The configured backend, connected, poses flowing, estimators reset; everything closed on exit."""
-    bodies = {d.rigid_body: d.name for d in cfg.drones}
+    bodies = {d.rigid_body: d.name for d in cfg.fleet()}
     faults = FaultClock()
     fleet = None
     with ExitStack() as stack:
@@ -215,7 +209,7 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
             clock: Clock = scaled
             fleet = stack.enter_context(
                 FleetProcess(
-                    [d.name for d in cfg.drones],
+                    [d.name for d in cfg.fleet()],
                     ground_positions(cfg, task, cfg.seed + 7919),
                     scaled,
                     DroneDynamics(lag=cfg.sim.lag, battery_drain=cfg.sim.battery_drain),
@@ -251,7 +245,7 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
             _schedule(cfg, faults, fleet, mocap, clock)
         else:
             clock = RealClock()
-            wanted = [d.rigid_body for d in cfg.drones] + ([cfg.frame_reference.body] if cfg.frame_reference else [])
+            wanted = [d.rigid_body for d in cfg.fleet()] + ([cfg.frame_reference.body] if cfg.frame_reference else [])
             mocap = MotionCaptureSource(
                 cfg.mocap.type,
                 {"hostname": cfg.mocap.hostname, **cfg.mocap.options}
@@ -262,7 +256,7 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
                 clock,
                 connect_timeout=cfg.mocap.connect_timeout,
             )
-            bridge = _bridge(cfg, {d.name: d.uri for d in cfg.drones}, clock)
+            bridge = _bridge(cfg, {d.name: d.uri for d in cfg.fleet()}, clock)
         mocap.start()
         stack.callback(mocap.stop)
         bridge.open()
@@ -281,7 +275,7 @@ def open_backend(cfg: DeployConfig, task: TaskConfig) -> Iterator[Backend]:
 
 def _schedule(cfg: DeployConfig, faults: FaultClock, fleet: Any, mocap: SimMocap, clock: Clock) -> None:
     """Turn the config's faults into callables fired by the loop at their flight time."""
-    body = {d.name: d.rigid_body for d in cfg.drones}
+    body = {d.name: d.rigid_body for d in cfg.fleet()}
     for f in cfg.faults:
         fire: Callable[[], None]
         if f.kind == "mocap_dropout":
@@ -331,76 +325,6 @@ def _pause_process(seconds: float) -> None:
     helper.wait()  # returns after the pause: this process was stopped meanwhile
 
 
-# ------------------------------------------------------------------ preflight
-def run_preflight(flight: Flight, cfg: DeployConfig, task: TaskConfig, wait: float = 3.0) -> Preflight:
-    """Every check of the dry run on the live backend (see :mod:`atdrone.deploy.preflight`)."""
-    clock, pre = flight.clock, Preflight()
-    deadline = clock.now() + wait * clock.rate
-    while clock.now() < deadline:
-        pos, yaw, age = flight.measured()
-        if (age < cfg.shield.stale_pose).all() and all(np.isfinite(v) for v in flight.bridge.battery().values()):
-            break
-        clock.sleep(0.05)
-    pos, yaw, age = flight.measured()
-    stale = [
-        f"{n} ({'never seen' if not np.isfinite(a) else f'{a:.2f} s old'})"
-        for n, a in zip(flight.names, age, strict=True)
-        if not a < cfg.shield.stale_pose
-    ]
-    pre.add(
-        "tracking",
-        [f"no fresh pose of {', '.join(stale)}"] if stale else [],
-        f"{len(flight.names)} rigid bodies tracked",
-    )
-    ref = cfg.frame_reference
-    if ref is None:
-        pre.add("frame", ["no frame_reference marker configured: the frame cannot be checked"], "")
-    else:
-        marker = flight.mocap.latest().get(ref.body)
-        seen = None if marker is None else (marker.pos, marker.yaw)
-        pre.add("frame", check_reference(ref.body, seen, ref.pos, ref.yaw_deg), "the reference marker is where stated")
-    p_boxes, e_boxes = spawn_regions(task)
-    boxes = p_boxes[: len(flight.pursuers)] + e_boxes[: len(flight.evader_drones)]
-    pre.add("spawn", check_spawn(flight.names, pos, boxes, cfg.spawn_tolerance), "every drone inside its spawn region")
-    pre.add("heading", check_heading(flight.names, yaw), "every drone faces +y")
-    pre.add(
-        "estimate",
-        check_estimates(flight.names, pos, yaw, flight.bridge.estimates()),
-        "every onboard state estimate agrees with motion capture (0.1 m, 10 deg)",
-    )
-    battery = flight.bridge.battery()
-    low = [
-        f"{n} at {battery.get(n, math.nan):.2f} V"
-        for n in flight.names
-        if not battery.get(n, math.nan) >= cfg.min_battery_preflight
-    ]
-    pre.add("battery", [f"below {cfg.min_battery_preflight} V: {', '.join(low)}"] if low else [], "every battery fine")
-    P = len(flight.pursuers)
-    if np.isfinite(pos).all() and np.isfinite(yaw).all():
-        pos_e = pos[P:, :2] if flight.evader_drones else np.array([b.mean(1) for b in e_boxes])
-        obs_problems = check_observation(
-            task, pos[:P, :2], yaw[:P], pos_e, lambda a, h, e, c: flight.observations(a, h, e, c)[0]
-        )
-    else:
-        obs_problems = ["poses missing: cannot compare observations"]
-    pre.add("observation", obs_problems, "the loop's observations equal the simulator's at the live poses")
-    return pre
-
-
-def plan_text(cfg: DeployConfig, member: str, task: TaskConfig) -> str:
-    """What an armed run would do."""
-    drones = ", ".join(f"{d.name} ({d.role}{', ' + d.uri if d.uri else ''})" for d in cfg.drones)
-    partners = f"zoo {cfg.partners.zoo}" if cfg.partners.zoo else ", ".join(cfg.partners.members)
-    return (
-        f"plan: fly member {member} on {task.name} ({cfg.backend} backend), {cfg.episodes} episode(s) of at most "
-        f"{task.task.task_horizon} steps at {cfg.flight_height} m; partners {partners}; evaders {cfg.evaders}\n"
-        f"      drones: {drones}\n"
-        f"      shield: fence margin {cfg.shield.margin} m, separation ellipsoid {cfg.shield.drone_radius} / "
-        f"{cfg.shield.drone_half_height} m per drone, "
-        f"stale pose {cfg.shield.stale_pose} s, battery {cfg.shield.min_battery} V"
-    )
-
-
 # ------------------------------------------------------------------ the job
 def run_deploy(
     cfg: DeployConfig,
@@ -431,7 +355,7 @@ def _deploy(
                 "evaders": cfg.evaders,
                 "dt": task.dt,
                 "arena": [task.site.boundary.width, task.site.boundary.height],
-                "drones": {d.name: d.role for d in cfg.drones},
+                "drones": {d.name: d.role for d in cfg.fleet()},
                 "flight_height": cfg.flight_height,
                 "clock_rate": backend.clock.rate,
             }
@@ -466,6 +390,7 @@ def _deploy(
                 endings=flight.ended,
                 ended_early=flight.aborted,
                 episodes_flown=flight.episodes_flown,
+                team_changes=flight.team_changes,
                 mocap_callback_errors=getattr(backend.mocap, "callback_errors", 0),
             )
             log.write(log_dir)

@@ -26,6 +26,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,7 +35,7 @@ from atdrone.deploy.clock import Clock
 from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.crtp import BIT_CRASHED, BIT_HL_DISABLED, BIT_HL_FINISHED, BIT_IS_FLYING, BIT_LOCKED, BIT_TUMBLED
 from atdrone.deploy.links import LinkHealth, LinkView
-from atdrone.deploy.reactions import Reaction, Verdict, spare_landing, verdict
+from atdrone.deploy.reactions import Reaction, Verdict, drops, spare_landing, verdict
 from atdrone.deploy.shield import Action, ShieldConfig, ShieldDecision, ellipsoid_distance
 
 AIRBORNE = ("taking_off", "flying", "landing")
@@ -116,6 +117,12 @@ class Landing:
     ) -> None:
         raise NotImplementedError
 
+    if TYPE_CHECKING:  # the backups' part of the flight (no runtime stubs: they would shadow it)
+
+        def _alone(self) -> np.ndarray: ...
+
+        def _drop(self, name: str, why: str) -> None: ...
+
     def _airborne(self) -> np.ndarray:
         return np.array([self.state[n] in AIRBORNE for n in self.names])
 
@@ -173,6 +180,9 @@ class Landing:
                 self.bridge.land([n], self._landing_time())
                 self.bridge.notify_stop([n])
                 self.state[n] = "landing"
+        dropped = drops(decision, self._alone())  # a partner's own battery or lost link: it alone leaves the flight
+        for n in dropped:
+            self._drop(n, dropped[n])
         stop = [n for i, n in enumerate(self.names) if decision.action[i] == Action.STOP and self.state[n] in AIRBORNE]
         where = {n: pos[i] for i, n in enumerate(self.names)}
         stop = spare_landing(stop, self.state, where, self.landing_from)
@@ -189,6 +199,8 @@ class Landing:
         for i, n in enumerate(self.names):
             if taken[i] == Action.STOP and n not in stop and self.state[n] != "stopped":
                 taken[i] = Action.LAND
+            if n in dropped:  # landing (or lost) alone: nothing for the rest of the flight to react to
+                taken[i] = Action.TRACK
         scope = self._airborne() | np.array([self.state[n] in ("lost", "stopped") for n in self.names])
         now = verdict(replace(decision, action=taken), scope)
         if now.reaction > self.reaction.reaction:

@@ -66,6 +66,7 @@ from atdrone.deploy.team import PolicyRunner, Team
 from atdrone.envs.evaders import EscapeParams
 from atdrone.envs.geometry import Geometry
 from atdrone.envs.observation import Arena, Poses, observe
+from atdrone.envs.rules import pursuer_pairs
 
 __all__ = ["COLUMN_CLEAR", "FaultClock", "Flight", "InjectedFault", "StopRequest", "Team", "advance_reference"]
 
@@ -109,11 +110,13 @@ class Flight(Episodes):
         learners, partners = cfg.role_names("learner"), cfg.role_names("partner")
         self.pursuers = learners + partners  # pursuer slot order: learners, then partners
         self.evader_drones = cfg.role_names("evader")
-        self.names = self.pursuers + self.evader_drones  # every physical drone
+        self.flyers = self.pursuers + self.evader_drones  # the drones that take off at the start
+        self.names = self.flyers + [b.name for b in cfg.backups]  # every physical drone, backups last
         self.learner_slots = np.arange(len(learners))
         self.partner_slots = np.arange(len(learners), len(self.pursuers))
-        self.roles = {d.name: d.role for d in cfg.drones}
-        self.bodies = {d.name: d.rigid_body for d in cfg.drones}
+        self.roles = {d.name: d.role for d in cfg.fleet()}
+        self.bodies = {d.name: d.rigid_body for d in cfg.fleet()}
+        self.pairs = pursuer_pairs(len(self.pursuers))  # the pursuer pairs a judgement's hit_pairs are of
         self.rng = np.random.default_rng(cfg.seed)
         self.escape = EscapeParams()
         self.horizon = cfg.horizon or task.task.task_horizon
@@ -150,6 +153,8 @@ class Flight(Episodes):
         self.valid_t = np.full(D, -np.inf)  # and when it was measured (clock)
         self.off_since = np.full(D, np.inf)  # clock time each drone's onboard estimate left its pose (inf: it agrees)
         self.grow = np.zeros(D)  # m each drone's separation ellipsoid was grown by last tick (no valid pose)
+        self.tick_t = self.t0
+        self._init_backups()
 
     # ------------------------------------------------------------------ poses
     def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -249,10 +254,10 @@ class Flight(Episodes):
     episode_done = False  # the current episode reached its own outcome (set per episode)
 
     def _takeoff(self) -> None:
-        self.bridge.arm(self.names)
+        self.bridge.arm(self.flyers)  # backups wait on the floor, disarmed
         self.landing_from.clear()
-        self.bridge.takeoff(self.names, self.cfg.flight_height, self.cfg.takeoff_duration)
-        self._set_state(self.names, "taking_off")
+        self.bridge.takeoff(self.flyers, self.cfg.flight_height, self.cfg.takeoff_duration)
+        self._set_state(self.flyers, "taking_off")
         self._watch(self.cfg.takeoff_duration + 0.5)
         self._set_state([n for n in self.names if self.state[n] == "taking_off"], "flying")
         self.prev_setpoint[:] = np.nan  # the first transit tick takes over from the planner, through the shield
@@ -261,6 +266,7 @@ class Flight(Episodes):
     def _begin_tick(self) -> float:
         """Wait for the next tick, beat the heartbeat, fire due faults; the tick's clock time."""
         tick = self.ticks.wait()
+        self.tick_t = tick  # the tick's clock time, for what happens in it (the log's rows carry it)
         self.bridge.beat()
         if self.link_health.host_paused(self.ticks.late_by, self.dt):
             self.notes.setdefault("", []).append("host_pause")
@@ -315,6 +321,7 @@ class Flight(Episodes):
             last_pos=self.valid_pos,
             grow=np.where(physical, grow, 0.0),
             estimate_off=self._estimate_off(pos, valid & airborne, now),
+            alone=self._alone(),
         )
         self.grow = inp.grow if inp.grow is not None else np.zeros(len(self.names))
         return shield(inp, self.shield_cfg)

@@ -2,7 +2,8 @@
 
 - tracking: every rigid body has a fresh pose;
 - spawn: every drone stands inside its spawn region of the task (pursuer slot i in
-  pursuer box i, evader j in evader box j), within ``spawn_tolerance``;
+  pursuer box i, evader j in evader box j), within ``spawn_tolerance``; a backup drone
+  (waiting on the floor to take a partner's slot) inside the fence;
 - heading: every drone faces +y, as every episode starts in training (catches a yaw
   convention or yaw offset that is off);
 - battery: every drone at or above ``min_battery_preflight``;
@@ -25,12 +26,17 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from atdrone.config import TaskConfig, spawn_boxes
 from atdrone.envs.core import BatchedPursuit
 from atdrone.envs.kinematics import wrap_angle
+
+if TYPE_CHECKING:
+    from atdrone.deploy.config import DeployConfig
+    from atdrone.deploy.loop import Flight
 
 HEADING_TOLERANCE_DEG = 20.0
 OBS_TOLERANCE = 0.35  # about 20 degrees of bearing (2 sin 10 deg) or 1.7 m / 5 of distance
@@ -174,3 +180,82 @@ def check_reference(
     if yaw_err > yaw_tolerance_deg:
         problems.append(f"reference body {body!r} yaw off its stated {yaw_deg:g} deg by {yaw_err:.0f} deg")
     return problems
+
+
+# ------------------------------------------------------------------ on the live backend
+def run_preflight(flight: Flight, cfg: DeployConfig, task: TaskConfig, wait: float = 3.0) -> Preflight:
+    """Every check of the dry run on the live backend (see :mod:`atdrone.deploy.preflight`)."""
+    clock, pre = flight.clock, Preflight()
+    deadline = clock.now() + wait * clock.rate
+    while clock.now() < deadline:
+        pos, yaw, age = flight.measured()
+        if (age < cfg.shield.stale_pose).all() and all(np.isfinite(v) for v in flight.bridge.battery().values()):
+            break
+        clock.sleep(0.05)
+    pos, yaw, age = flight.measured()
+    stale = [
+        f"{n} ({'never seen' if not np.isfinite(a) else f'{a:.2f} s old'})"
+        for n, a in zip(flight.names, age, strict=True)
+        if not a < cfg.shield.stale_pose
+    ]
+    pre.add(
+        "tracking",
+        [f"no fresh pose of {', '.join(stale)}"] if stale else [],
+        f"{len(flight.names)} rigid bodies tracked",
+    )
+    ref = cfg.frame_reference
+    if ref is None:
+        pre.add("frame", ["no frame_reference marker configured: the frame cannot be checked"], "")
+    else:
+        marker = flight.mocap.latest().get(ref.body)
+        seen = None if marker is None else (marker.pos, marker.yaw)
+        pre.add("frame", check_reference(ref.body, seen, ref.pos, ref.yaw_deg), "the reference marker is where stated")
+    p_boxes, e_boxes = spawn_regions(task)
+    boxes = p_boxes[: len(flight.pursuers)] + e_boxes[: len(flight.evader_drones)]
+    F = len(flight.flyers)
+    fence = np.array([[cfg.shield.margin, task.site.boundary.width - cfg.shield.margin]])
+    fence = np.r_[fence, [[cfg.shield.margin, task.site.boundary.height - cfg.shield.margin]]]
+    spawn = check_spawn(flight.flyers, pos[:F], boxes, cfg.spawn_tolerance)
+    spawn += check_spawn(flight.names[F:], pos[F:], [fence] * (len(flight.names) - F), 0.0)  # backups
+    pre.add(
+        "spawn",
+        spawn,
+        "every drone inside its spawn region" + (", every backup inside the fence" if len(flight.names) > F else ""),
+    )
+    pre.add("heading", check_heading(flight.names, yaw), "every drone faces +y")
+    pre.add(
+        "estimate",
+        check_estimates(flight.names, pos, yaw, flight.bridge.estimates()),
+        "every onboard state estimate agrees with motion capture (0.1 m, 10 deg)",
+    )
+    battery = flight.bridge.battery()
+    low = [
+        f"{n} at {battery.get(n, math.nan):.2f} V"
+        for n in flight.names
+        if not battery.get(n, math.nan) >= cfg.min_battery_preflight
+    ]
+    pre.add("battery", [f"below {cfg.min_battery_preflight} V: {', '.join(low)}"] if low else [], "every battery fine")
+    P = len(flight.pursuers)
+    if np.isfinite(pos[:F]).all() and np.isfinite(yaw[:F]).all():
+        pos_e = pos[P:F, :2] if flight.evader_drones else np.array([b.mean(1) for b in e_boxes])
+        obs_problems = check_observation(
+            task, pos[:P, :2], yaw[:P], pos_e, lambda a, h, e, c: flight.observations(a, h, e, c)[0]
+        )
+    else:
+        obs_problems = ["poses missing: cannot compare observations"]
+    pre.add("observation", obs_problems, "the loop's observations equal the simulator's at the live poses")
+    return pre
+
+
+def plan_text(cfg: DeployConfig, member: str, task: TaskConfig) -> str:
+    """What an armed run would do."""
+    drones = ", ".join(f"{d.name} ({d.role}{', ' + d.uri if d.uri else ''})" for d in cfg.fleet())
+    partners = f"zoo {cfg.partners.zoo}" if cfg.partners.zoo else ", ".join(cfg.partners.members)
+    return (
+        f"plan: fly member {member} on {task.name} ({cfg.backend} backend), {cfg.episodes} episode(s) of at most "
+        f"{task.task.task_horizon} steps at {cfg.flight_height} m; partners {partners}; evaders {cfg.evaders}\n"
+        f"      drones: {drones}\n"
+        f"      shield: fence margin {cfg.shield.margin} m, separation ellipsoid {cfg.shield.drone_radius} / "
+        f"{cfg.shield.drone_half_height} m per drone, "
+        f"stale pose {cfg.shield.stale_pose} s, battery {cfg.shield.min_battery} V"
+    )

@@ -13,6 +13,7 @@ from __future__ import annotations
 import concurrent.futures
 import math
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -108,6 +109,18 @@ class Sequencing:
     def _landing_time(self) -> float:
         raise NotImplementedError
 
+    if TYPE_CHECKING:  # the backups' part of the flight (no runtime stubs: they would shadow it)
+
+        def _waiting_backups(self) -> list[str]: ...
+
+        def _joining(self) -> list[str]: ...
+
+        def _backups_up(self, rising: Sequence[str]) -> None: ...
+
+        def _slot_targets(self, spawn_p: np.ndarray, spawn_e: np.ndarray, fallback: np.ndarray) -> np.ndarray: ...
+
+        def _gone(self) -> np.ndarray: ...
+
     def _spawn(self) -> tuple[np.ndarray, np.ndarray]:
         P = len(self.pursuers)
         physical_e = bool(self.evader_drones)
@@ -132,24 +145,31 @@ class Sequencing:
         while any(self.state[n] == "landing" for n in self.names) and self.clock.now() < down_by:
             if not self._hold_tick():
                 return None
-        landed = [n for n in self.names if self.state[n] == "landed"]
-        if landed:
-            if not self._clear_columns(landed):
+        # landed drones take off again (a dropped one stays down), and so do backups still waiting for a slot
+        gone = self._gone()
+        waiting = self._waiting_backups()
+        landed = [n for i, n in enumerate(self.names) if self.state[n] == "landed" and not gone[i]] + waiting
+        rising = [n for n in self.names if self.state[n] == "taking_off"]  # a backup that took off in the episode
+        if landed or rising:
+            if landed and not self._clear_columns(landed):
                 return None
-            # a drone that needs arming disarms 3 s after it landed (the supervisor's landing timeout): arm again
-            self.bridge.request_arming(landed)
-            self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
-            self._set_state(landed, "taking_off")
+            if landed:
+                # a drone that needs arming disarms 3 s after it landed (the supervisor's landing timeout): arm again
+                self.bridge.request_arming(landed)
+                self.bridge.takeoff(landed, self.cfg.flight_height, self.cfg.takeoff_duration)
+                self._set_state(landed, "taking_off")
             # the drones in the air keep their setpoint stream (held where they are): without it the firmware
             # levels them out after 0.5 s and stops their motors after 2 s
             end = self.clock.now() + self.cfg.takeoff_duration + 0.5
             while self.clock.now() < end:
                 if not self._hold_tick():
                     return None
-            up = [n for n in landed if self.state[n] == "taking_off"]
+            joining = self._joining()
+            up = [n for n in landed + rising if self.state[n] == "taking_off" and n not in joining]
             self._set_state(up, "flying")
             k = [self.names.index(n) for n in up]
             self.hold_at[k], self.prev_setpoint[k] = np.nan, np.nan  # taken over from the planner
+        self._backups_up(waiting)  # a backup in the air takes its slot now (one that did not rise lands)
         if self.aborted:
             return None
         start = self._at_height()
@@ -162,7 +182,7 @@ class Sequencing:
             if draw:  # no transit to that draw: the task's spawn distribution, conditioned on a reachable one
                 spawn_p, spawn_e = self._spawn()
                 self.notes.setdefault("", []).append("spawn_redrawn")
-            targets = np.concatenate([spawn_p, spawn_e if self.evader_drones else np.zeros((0, 2))])
+            targets = self._slot_targets(spawn_p, spawn_e, start[:, :2])
             end = np.c_[targets, np.full(len(targets), self.cfg.flight_height)]
             # the task's spawn regions reach into the fence margin: a target the shield would clip is never reached
             end[:, :2], _ = push_out_of_obstacles(
@@ -238,7 +258,7 @@ class Sequencing:
             self._touchdown(pos)
             self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             done = np.hypot(*(pos[:, :2] - end[:, :2]).T) < ARRIVED
-            if tick - began >= plan.total and done[moving].all():
+            if tick - began >= plan.total and done[moving & ~self._gone()].all():  # a dropped drone went down
                 return True
         if not self.aborted:
             self.aborted = "transit did not arrive in time"

@@ -34,6 +34,13 @@ class Team:
         for p in [self.learner, *self.partners]:
             p.reset(np.ones(1, dtype=bool))
 
+    def forget(self, slot: int) -> None:
+        """Every policy with per-drone memory forgets pursuer ``slot``: another drone took it mid-episode."""
+        for p in [self.learner, *self.partners]:
+            forget = getattr(p, "forget", None)
+            if forget is not None:
+                forget(np.zeros(1, dtype=np.intp), np.array([slot]))
+
     def act(self, obs: np.ndarray, poses: Poses, learner_slots: np.ndarray, partner_slots: np.ndarray) -> np.ndarray:
         """Actions (num_p,) of every pursuer slot from observations (1, num_p, obs_dim)."""
         actions = np.zeros(obs.shape[1])
