@@ -384,21 +384,21 @@ def format_summary(summary: Mapping[str, Any]) -> str:
 
 
 # ------------------------------------------------------------------ MLflow
+def _in(episode: int) -> str:
+    return f"in episode {int(episode) + 1}" if int(episode) >= 0 else "before the first episode"
+
+
 def team_change(change: Mapping[str, Any]) -> str:
     """One team change as text: the partner drone dropped, and what came of its slot."""
-    text = (
-        f"{change['drone']} (slot {change['slot']}) dropped at t = {_number(change['t'])} s in episode "
-        f"{int(change['episode']) + 1}: {change['why']}"
-    )
+    text = f"{change['drone']} (slot {change['slot']}) dropped at t = {_number(change['t'])} s {_in(change['episode'])}"
+    text += f": {change['why']}"
     backup = change.get("backup")
     if not backup:
         return text + "; no backup, the slot stayed empty"
     if change.get("took_slot_t") is not None:
         reset = ", its memory reset" if change.get("memory_reset") else ""
-        return (
-            text + f"; backup {backup} took the slot at t = {_number(change['took_slot_t'])} s in episode "
-            f"{int(change['took_slot_episode']) + 1}{reset}"
-        )
+        took = f"{_number(change['took_slot_t'])} s {_in(change['took_slot_episode'])}"
+        return text + f"; backup {backup} took the slot at t = {took}{reset}"
     return text + f"; backup {backup} did not take the slot ({change.get('backup_end') or 'the flight ended first'})"
 
 
