@@ -11,6 +11,13 @@ MPE2 simple_tag in the same rounds, and prints the ratios this tree / reference 
 >= 1.3x) and this tree / MPE2.
 Usage: python benchmarks/env_throughput.py --reference DIR [--rounds 3] [--tasks ...] [--num-envs 256 4096]
 
+With ``--events-ratio PROTOCOL`` it times BatchedPursuit's step with the protocol's team events
+against without, in one process, alternating rounds (``--rounds``, ``--seconds`` each) for each
+``--num-envs`` (default 64 256 4096), both driven by the demo policy so episodes last as in an
+evaluation, and prints the median ratio (the target: at most 1.10 with one event per episode,
+e.g. benchmarks/protocols/drop_early.json, a drone short for nearly the whole episode).
+Usage: python benchmarks/env_throughput.py --events-ratio benchmarks/protocols/drop_early.json [--rounds 15]
+
 With ``--fixed-steps N`` it steps BatchedPursuit N times (one ``--num-envs`` size,
 ``--task``), with the team events of ``--protocol`` when given, and prints the rate: a
 fixed amount of work for timing whole processes against each other (``farm-bench --vs``),
@@ -70,6 +77,60 @@ def fixed_steps(task: str, num_envs: int, steps: int, protocol: str = "") -> dic
             changes += int(info["team_changed"].sum())
     elapsed = time.perf_counter() - start
     return {"env_steps_per_s": round(num_envs * steps / elapsed, 1), "episodes_ended": episodes, "events": changes}
+
+
+def events_ratio(task: str, num_envs: int, protocol: str, rounds: int, seconds: float) -> dict[str, Any]:
+    """The time of BatchedPursuit's step with ``protocol``'s team events over its time without, in one process:
+    both simulators driven by the demo policy (:func:`~atdrone.policies.rules.chase_nearest`, episodes as
+    long as an evaluation's, unlike random actions' few steps), only ``step`` timed, in alternating rounds of
+    about ``seconds`` each; the median of the rounds' ratios (robust to a machine whose speed drifts)."""
+    from atdrone.envs import BatchedPursuit
+    from atdrone.policies.rules import chase_nearest
+    from atdrone.teams.protocols import load_protocol
+
+    plan = load_protocol(protocol).plan
+    envs = {
+        "plain": BatchedPursuit(task, num_envs=num_envs, seed=0),
+        "events": BatchedPursuit(task, num_envs=num_envs, seed=0, events=plan),
+    }
+    obs = {k: e.reset() for k, e in envs.items()}
+    counts = {"episodes": 0, "events": 0}
+    # a round's steps: about ``seconds`` of the plain simulator, from a short calibration
+    t0, calib = time.perf_counter(), 5
+    for _ in range(calib):
+        obs["plain"], *_ = envs["plain"].step(chase_nearest(obs["plain"], envs["plain"].num_e))
+    steps = max(5, int(seconds / ((time.perf_counter() - t0) / calib)))
+    ratios, spent = [], {"plain": 0.0, "events": 0.0}
+    for r in range(rounds):
+        took = {}
+        for name in ("plain", "events") if r % 2 == 0 else ("events", "plain"):
+            env, t = envs[name], 0.0
+            for _ in range(steps):
+                actions = chase_nearest(obs[name], env.num_e)
+                start = time.perf_counter()
+                obs[name], _, done, info = env.step(actions)
+                t += time.perf_counter() - start
+                if name == "events":
+                    counts["episodes"] += int(done.sum())
+                    counts["events"] += int(info["team_changed"].sum())
+            took[name] = t
+            spent[name] += t
+        ratios.append(took["events"] / took["plain"])
+    return {
+        "task": task,
+        "num_envs": num_envs,
+        "protocol": load_protocol(protocol).name,
+        "rounds": rounds,
+        "steps_per_round": steps,
+        "time_ratio_events_over_plain": {
+            "median": round(float(np.median(ratios)), 3),
+            "min": round(min(ratios), 3),
+            "max": round(max(ratios), 3),
+        },
+        "env_steps_per_s": {k: round(num_envs * steps * rounds / v, 1) for k, v in spent.items()},
+        "events_per_episode": round(counts["events"] / max(counts["episodes"], 1), 3),
+        "target": "median <= 1.10",
+    }
 
 
 def batched(task: str, num_envs: int, seconds: float) -> float:
@@ -203,8 +264,16 @@ def main() -> None:
     parser.add_argument("--batched-only", action="store_true", help=argparse.SUPPRESS)  # one tree's round
     parser.add_argument("--fixed-steps", type=int, default=0, help="step this many times and print the rate")
     parser.add_argument("--protocol", default="", help="with --fixed-steps: the team events of this protocol")
+    parser.add_argument(
+        "--events-ratio", default="", metavar="PROTOCOL", help="time step() with this protocol's events over without"
+    )
     args = parser.parse_args()
     machine = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()}
+    if args.events_ratio:
+        sizes = args.num_envs or [64, 256, 4096]
+        rows = [events_ratio(args.task, n, args.events_ratio, args.rounds, args.seconds) for n in sizes]
+        print(json.dumps({"machine": platform.processor() or platform.machine(), "results": rows}, indent=1))
+        return
     if args.fixed_steps:
         num_envs = (args.num_envs or [4096])[0]
         rate = fixed_steps(args.task, num_envs, args.fixed_steps, args.protocol)

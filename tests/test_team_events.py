@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from atdrone.config import load_task
 from atdrone.envs.core import BatchedPursuit
 from atdrone.envs.events import DROP, JOIN, SWAP, EventPlan, EventSpec, parked
 from atdrone.models.networks import ActorCritic, NetConfig
@@ -62,14 +65,31 @@ def test_a_dropped_drone_neither_captures_nor_collides_and_no_observation_shows_
     core.state.pos[:, 0] = core.state.pos[:, 1]
     info = core.step(np.zeros((2, 4)))[3]
     assert not info["collided"].any() and not info["hit_pairs"].any()
+    assert np.array_equal(core.state.pos[:, 0], np.broadcast_to(parked(4)[0], (2, 2)))  # back at its spot
+    _landed_drone_is_unseen(core)
+
+
+def _landed_drone_is_unseen(core: BatchedPursuit) -> None:
+    """With slot 0 landed and the others well apart within range of each other: slot 0 sees nothing and no
+    other drone's teammate block shows it."""
     s = core.state
-    s.pos[:, 1:4] = [[1.0, 1.0], [1.5, 1.0], [2.0, 1.0]]  # the others well apart, within range of each other
-    s.pos[:, 0] = [1.5, 1.2]  # where the landed drone would be seen, had it not landed
+    s.pos[:, 1:4] = [[1.0, 1.0], [1.5, 1.0], [2.0, 1.0]]
     obs = core.observe()
     assert not obs[:, 0].any()  # a landed drone sees nothing
     E = core.num_e
-    teammate = obs[:, 1:, 4 * (E + 1) :].reshape(2, 3, 3, 4)  # each other drone's 3 teammate blocks
+    teammate = obs[:, 1:, 4 * (E + 1) :].reshape(len(obs), 3, 3, 4)  # each other drone's 3 teammate blocks
     assert not teammate[:, :, 0].any() and teammate[:, :, 1:].any()  # slot 0 is each one's first teammate block
+
+
+def test_a_landed_drone_is_hidden_even_where_the_reception_range_reaches_its_parking_spot() -> None:
+    cfg = load_task(TASK)
+    wide = dataclasses.replace(cfg, players=dataclasses.replace(cfg.players, reception_range=1000.0))
+    core = BatchedPursuit(wide, 2, seed=0, events=EventPlan((EventSpec("drop", (1, 1), "any"),)))
+    core.reset()
+    core.state.ev_slot[:] = 0
+    core.step(np.zeros((2, 4)))
+    assert not core.state.present[:, 0].any()
+    _landed_drone_is_unseen(core)
 
 
 def test_a_join_refills_the_dropped_slot_in_the_spawn_region() -> None:

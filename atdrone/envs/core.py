@@ -151,6 +151,7 @@ class BatchedPursuit:
         self.next_episode = 0  # the number of the next episode a reset or an auto-reset starts
         self.pairs = pursuer_pairs(self.num_p).copy()  # (pairs, 2): the pursuer pairs of info["hit_pairs"]
         self.events = events if events is not None and len(events) else None  # the team events of every episode
+        self._parking_seen = not ev_.parking_unseen(self.num_p, self.cfg.players.reception_range)
         self.state = self._fresh_state(np.arange(self.num_envs))  # what reset() starts
         self._obs: np.ndarray | None = None
         # the whole batch just before the last auto-reset (to show how episodes ended)
@@ -252,7 +253,7 @@ class BatchedPursuit:
         if self.events is not None:
             present = (self.state if state is None else state).present
             if not present.all():
-                ev_.hide_absent(obs, present, self.num_e)
+                ev_.hide_absent(obs, present, self.num_e, blocks=self._parking_seen)
         return obs
 
     def bind_events(self, rows: np.ndarray, learner: np.ndarray) -> None:

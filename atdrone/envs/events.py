@@ -283,13 +283,22 @@ def _mates(num_p: int) -> np.ndarray:
     return out
 
 
-def hide_absent(obs: np.ndarray, present: np.ndarray, num_e: int) -> None:
-    """Zero in ``obs`` (B, P, D), in place, every landed drone's (not ``present`` (B, P)) own row and its
-    teammate block in the others' rows: it is masked as a teammate beyond range is."""
+def parking_unseen(num_p: int, reception_range: float) -> bool:
+    """Whether every parking spot lies beyond ``reception_range`` of every point of the arena (x, y >= 0), so
+    that the observation's range mask already hides a landed drone from its teammates."""
+    spots = parked(num_p)
+    return bool(np.hypot(np.minimum(spots[:, 0], 0.0), np.minimum(spots[:, 1], 0.0)).min() > reception_range)
+
+
+def hide_absent(obs: np.ndarray, present: np.ndarray, num_e: int, blocks: bool = True) -> None:
+    """Zero in ``obs`` (B, P, D), in place, every landed drone's (not ``present`` (B, P)) own row and, with
+    ``blocks``, its teammate block in the others' rows: it is masked as a teammate beyond range is (without
+    ``blocks`` when :func:`parking_unseen` says the range mask has done so already)."""
     B, P, _ = obs.shape
     obs[~present] = 0.0
-    blocks = obs.reshape(B, P, -1, 4)[:, :, num_e + 1 :]  # (B, P, P - 1, 4) teammate blocks, a view
-    blocks[~present[:, _mates(P)]] = 0.0
+    if blocks:
+        mates = obs.reshape(B, P, -1, 4)[:, :, num_e + 1 :]  # (B, P, P - 1, 4) teammate blocks, a view
+        mates[~present[:, _mates(P)]] = 0.0
 
 
 def absent_judgement(judged: Judgement, present: np.ndarray, pairs: np.ndarray) -> Judgement:
