@@ -19,7 +19,16 @@ from pathlib import Path
 from typing import Any
 
 from atdrone.fileio import user_cache
-from atdrone.tracking_views import member_series, population_columns, population_markdown
+from atdrone.tracking_views import (
+    VIEW_ID,
+    VIEW_TAG,
+    member_series,
+    population_columns,
+    population_markdown,
+    read_view,
+    runs_view_state,
+    view_tag_value,
+)
 
 DEFAULT_URI = "sqlite:///mlflow.db"
 __all__ = ["Tracker", "member_series", "population_columns", "population_markdown"]
@@ -100,7 +109,39 @@ class Tracker:
             for key, value in EXPERIMENT_KIND.items():
                 if found is None or found.tags.get(key) != value:
                     client.set_experiment_tag(ident, key, value)
+        if found is None or VIEW_TAG not in found.tags:  # what the printed link opens (ui_link)
+            self._refresh_view_quietly(str(ident))
         return str(ident)
+
+    def refresh_view(self, experiment_id: str) -> None:
+        """Write the experiment's shared view (:data:`VIEW_TAG`, what :func:`ui_link` opens) from the metric names
+        its runs have logged: the key numbers as columns, the top-level runs' charts and no empty sections
+        (:func:`atdrone.tracking_views.runs_view_state`). Columns alone when the charts would not fit in a tag."""
+        client = self.mlflow.MlflowClient()
+        top: set[str] = set()
+        nested: set[str] = set()
+        for run in client.search_runs([experiment_id], max_results=50_000):
+            (nested if "mlflow.parentRunId" in run.data.tags else top).update(run.data.metrics)
+        state = runs_view_state(top, nested)
+        old = client.get_experiment(experiment_id).tags.get(VIEW_TAG)
+        now = int(time.time() * 1000)
+        try:
+            created = read_view(old)[0] if old else now
+        except (ValueError, KeyError, TypeError):  # not ours (a view saved from the UI under the same id)
+            created = now
+        try:
+            value = view_tag_value(state, created, now)
+        except ValueError:
+            columns = {k: state[k] for k in ("selectedColumns", "hideEmptyCharts")}
+            value = view_tag_value(columns, created, now)
+        client.set_experiment_tag(experiment_id, VIEW_TAG, value)
+
+    def _refresh_view_quietly(self, experiment_id: str) -> None:
+        """:meth:`refresh_view`, a failure logged: a view is never worth a run."""
+        try:
+            self.refresh_view(experiment_id)
+        except Exception as exc:  # MLflow raises its own exceptions (store busy, a deleted experiment)
+            log.warning("MLflow view of experiment %s not updated: %s", experiment_id, exc)
 
     @contextmanager
     def run(
@@ -119,15 +160,24 @@ class Tracker:
         if not nested:
             self.mlflow.set_experiment(experiment_id=self.experiment(experiment))
         active = self.mlflow.start_run(run_name=run_name, nested=nested, run_id=run_id, tags=dict(tags or {}))
+        top = None if nested else str(active.info.experiment_id)
         try:
             yield active.info.run_id
         except (KeyboardInterrupt, SystemExit):
             self.mlflow.end_run("KILLED")
+            self._refresh_view_at_end(top)
             raise
         except BaseException:
             self.mlflow.end_run("FAILED")
+            self._refresh_view_at_end(top)
             raise
         self.mlflow.end_run("FINISHED")
+        self._refresh_view_at_end(top)
+
+    def _refresh_view_at_end(self, experiment_id: str | None) -> None:
+        """At the end of a top-level run (``experiment_id`` None for a nested one): its experiment's view."""
+        if experiment_id is not None:
+            self._refresh_view_quietly(experiment_id)
 
     def end_stale_runs(self, experiment: str, tags: Mapping[str, str], keep: str | None = None) -> list[str]:
         """End as KILLED the RUNNING runs with ``tags`` (a dead attempt's), except ``keep``; their ids."""
@@ -392,19 +442,25 @@ UI_ADDRESS = "http://127.0.0.1:5000"  # where `mlflow ui` serves by default
 
 
 def ui_link(experiment: str, uri: str | None = None) -> str:
-    """The MLflow UI address of ``experiment`` in the model-training view.
+    """The MLflow UI address of ``experiment`` in the model-training view, on its shared view when it has one.
 
     MLflow 3's UI keeps a workflow type per browser (GenAI by default, so a new browser
     shows "Traces 0"); the ``workflowType=machine_learning`` parameter opens the runs
     table whatever the browser saw before. The experiment's tag (:data:`EXPERIMENT_KIND`)
-    says the same for MLflow's own guess.
+    says the same for MLflow's own guess. ``viewStateShareKey`` opens the view atdrone wrote
+    (:meth:`Tracker.refresh_view`: the key numbers as columns, charts without empty sections); it must
+    name the ``/runs`` tab, since MLflow's redirect from the experiment's address drops it.
     """
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     import mlflow
 
     found = mlflow.MlflowClient(tracking_uri=tracking_uri(uri)).get_experiment_by_name(experiment)
-    page = f"#/experiments/{found.experiment_id}" if found is not None else "#/experiments"
-    return f"{UI_ADDRESS}/{page}?workflowType=machine_learning"
+    if found is None:
+        return f"{UI_ADDRESS}/#/experiments?workflowType=machine_learning"
+    if VIEW_TAG in found.tags:
+        page = f"#/experiments/{found.experiment_id}/runs?viewStateShareKey={VIEW_ID}&"
+        return f"{UI_ADDRESS}/{page}workflowType=machine_learning"
+    return f"{UI_ADDRESS}/#/experiments/{found.experiment_id}?workflowType=machine_learning"
 
 
 def ui_run_link(run_id: str, uri: str | None = None) -> str:

@@ -285,7 +285,8 @@ def test_train_logs_to_the_tracking_uri_it_is_given(
     assert main(["train", str(config), "--tracking-uri", store, "--no-progress"]) == 0
     out = capsys.readouterr().out
     found = mlflow.MlflowClient(store).get_experiment_by_name("ctrl_c")
-    assert found is not None and f"#/experiments/{found.experiment_id}?workflowType=machine_learning" in out
+    assert found is not None
+    assert f"#/experiments/{found.experiment_id}/runs?viewStateShareKey=atdrone&workflowType=machine_learning" in out
     assert str(tmp_path / "elsewhere" / "mlflow.db") in out
     assert mlflow.MlflowClient(default).get_experiment_by_name("ctrl_c") is None
 

@@ -1,4 +1,5 @@
-"""What MLflow shows of a population: per-member values as one series each, a run description, main columns."""
+"""What MLflow shows of a population: per-member values as one series each, a run description, main columns, and
+the experiment's view (the key numbers as columns, charts without empty sections) that the printed link opens."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from atdrone.tracking import Tracker, member_series, population_columns, population_markdown
+from atdrone.tracking import Tracker, member_series, population_columns, population_markdown, ui_link
+from atdrone.tracking_views import VIEW_TAG, key_metric_columns, read_view, runs_view_state, view_tag_value
 
 
 def test_per_member_metrics_become_one_series_each_in_population_order() -> None:
@@ -54,3 +56,59 @@ def test_series_description_and_main_columns_reach_the_store(
         "|---|---|---|",
     ]
     assert "| c | - | 50.00 |" in note
+
+
+def test_the_view_shows_the_key_numbers_as_columns_and_charts_only_what_the_table_shows() -> None:
+    top = ["validation_SUC_best", "validation_SUC_mean", "zoo3_SUC_champion", "eval/validation/best_SUC"]
+    top += ["gen/zoo3_SUC_best_48ep", "gen/population_size"]
+    state = runs_view_state(top, nested=["budget/env_steps", "pop/rho", "train/loss", "gen/population_size"])
+    assert state["selectedColumns"] == [
+        "attributes.`Models`",
+        "metrics.`validation_SUC_best`",
+        "metrics.`validation_SUC_mean`",
+        "metrics.`zoo3_SUC_champion`",
+    ]
+    assert [s["name"] for s in state["compareRunSections"]] == ["Model metrics", "gen"]  # no budget, pop, train
+    charts = {c["metricKey"]: c for c in state["compareRunCharts"]}
+    assert {k for k, c in charts.items() if c["deleted"]} == {
+        "budget/env_steps",
+        "pop/rho",
+        "train/loss",
+        "eval/validation/best_SUC",  # validation_SUC_best again
+    }
+    assert not charts["validation_SUC_best"]["isGenerated"]  # a bar per run, not a one-point line
+    assert charts["gen/population_size"]["isGenerated"] and not charts["gen/population_size"]["deleted"]
+    # a training run's and an evaluation's numbers; never a curve nor an interval bound
+    assert key_metric_columns(["eval/SUC", "eval/COL", "train/loss", "4p2e1o/zoo1/SUC_ci95_low"]) == [
+        "eval/SUC",
+        "eval/COL",
+    ]
+    created, back = read_view(view_tag_value(state, 1_000, 2_000))
+    assert (created, back) == (1_000, state)
+
+
+def test_every_experiment_gets_the_view_and_its_link_opens_it(
+    tmp_path: Path, mlflow_store: Callable[[Path], str]
+) -> None:
+    import json
+
+    import mlflow
+
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    tracker = Tracker(uri)
+    ident = tracker.experiment("population")
+    client = mlflow.MlflowClient(uri)
+    first = client.get_experiment(ident).tags[VIEW_TAG]
+    assert json.loads(first)["name"] == "atdrone: key metrics" and json.loads(first)["state"].startswith("deflate;")
+    with tracker.run("population", "parent") as parent:
+        tracker.log_metrics({"gen/population_size": 2.0}, step=0)
+        with tracker.run("population", "gen-0", nested=True):
+            tracker.log_metrics({"budget/env_steps": 4096.0}, step=0)
+        tracker.log_metrics({"validation_SUC_best": 55.0}, step=1, run_id=parent)
+    created, state = read_view(client.get_experiment(ident).tags[VIEW_TAG])  # written again as the run ended
+    assert created == read_view(first)[0]
+    assert "metrics.`validation_SUC_best`" in state["selectedColumns"]
+    assert [s["name"] for s in state["compareRunSections"]] == ["Model metrics", "gen"]
+    assert ui_link("population", uri).endswith(
+        f"/#/experiments/{ident}/runs?viewStateShareKey=atdrone&workflowType=machine_learning"
+    )
