@@ -15,9 +15,10 @@ fence, clear of the obstacles and :data:`~atdrone.deploy.transit.MARGIN` separat
 ellipsoids from every drone in the air), streamed through the shield like every other
 setpoint, and takes the slot: the slot's partner policy acts through it from the next
 tick, its memory of the slot forgotten. A backup that is itself dropped, fails its
-takeoff or cannot take the slot within :data:`JOIN_TIMEOUT` lands, and the slot stays
-empty. Between episodes a waiting backup takes off with the drones that landed, and a
-backup in the air takes its slot at once (the transit flies it to the slot's spawn).
+takeoff or cannot take the slot within :data:`JOIN_TIMEOUT` of its takeoff lands (one its
+firmware locked on the floor never takes off), and the slot stays empty. Between
+episodes a waiting backup takes off with the drones that landed, and a backup in the air
+takes its slot at once (the transit flies it to the slot's spawn).
 
 :class:`Backups` is the part of :class:`~atdrone.deploy.loop.Flight` that does this; the
 team changes are kept in :attr:`Backups.team_changes` for the flight log.
@@ -36,6 +37,7 @@ from atdrone.config import TaskConfig
 from atdrone.deploy.bridge import Bridge
 from atdrone.deploy.clock import Clock
 from atdrone.deploy.config import DeployConfig
+from atdrone.deploy.landing import cut_by_firmware
 from atdrone.deploy.links import LinkView
 from atdrone.deploy.sequence import COLUMN_CLEAR
 from atdrone.deploy.shield import HOLD_MARGIN, Obstacles, ShieldConfig, ellipsoid_distance, obstacle_distance
@@ -44,7 +46,7 @@ from atdrone.deploy.transit import MARGIN
 from atdrone.envs.geometry import Geometry
 
 JOIN_ARRIVED = 0.1  # m: a backup this close to its spawn takes the slot
-JOIN_TIMEOUT = 40.0  # s (clock) from the drop: a backup that has not taken the slot by then lands
+JOIN_TIMEOUT = 40.0  # s (clock) from its takeoff: a backup that has not taken the slot by then lands
 RISEN = 0.5  # of the flight height: a backup lower than this at the end of its takeoff failed it
 GRID = 0.1  # m between the spawn points tried
 
@@ -119,7 +121,7 @@ class Join:
     record: dict[str, Any]
     phase: str = "waiting"
     since: float = 0.0
-    dropped_at: float = 0.0
+    rose_at: float = math.inf  # clock time it took off
     target: np.ndarray | None = field(default=None, repr=False)
 
 
@@ -188,6 +190,9 @@ class Backups:
             return
         self.retired.add(name)
         self.notes.setdefault(name, []).append(f"dropped:{why}")
+        if name in self.spares:  # a backup on the floor, not called yet: it will take no slot
+            self.spares.remove(name)
+            self.progress(f"[deploy] backup {name} dropped ({why}) on the floor: it will take no slot")
         if why == "battery":
             self._land([name])
         join = next((j for j in self.joins if j.drone == name), None)
@@ -218,7 +223,7 @@ class Backups:
         if backup:
             self.spares.remove(backup)
             record["backup"] = backup
-            self.joins.append(Join(slot, backup, record, since=now, dropped_at=now))
+            self.joins.append(Join(slot, backup, record, since=now))
             said += f"; backup {backup} takes off for it"
         self.progress(said)
 
@@ -242,6 +247,7 @@ class Backups:
         self.bridge.takeoff([join.drone], self.cfg.flight_height, self.cfg.takeoff_duration)
         self._set_state([join.drone], "taking_off")
         join.phase, join.since = "takeoff", self.clock.now()
+        join.rose_at = join.since
         self.notes.setdefault(join.drone, []).append("backup_takeoff")
 
     def _risen(self, join: Join, pos: np.ndarray) -> bool:
@@ -296,10 +302,12 @@ class Backups:
         h, r, hh = self.cfg.flight_height, self.shield_cfg.drone_radius, self.shield_cfg.drone_half_height
         for join in list(self.joins):
             k = self.index[join.drone]
-            if now - join.dropped_at > JOIN_TIMEOUT and join.phase != "waiting":
-                self._give_up(join, f"did not take the slot within {JOIN_TIMEOUT:.0f} s")
+            if now - join.rose_at > JOIN_TIMEOUT:
+                self._give_up(join, f"did not take the slot within {JOIN_TIMEOUT:.0f} s of its takeoff")
                 continue
-            if join.phase == "waiting":
+            if join.phase == "waiting" and cut_by_firmware(self.bridge.supervisor().get(join.drone, 0)):
+                self._give_up(join, "was locked by its firmware before its takeoff", land=False)
+            elif join.phase == "waiting":
                 others = air & (np.arange(len(self.names)) != k)
                 near = np.hypot(*(pos[others, :2] - pos[k, :2]).T) < COLUMN_CLEAR
                 heard = self.links.silence[k] <= self.shield_cfg.link_timeout
@@ -360,7 +368,7 @@ class Backups:
         pos = self.measured()[0]
         for join in list(self.joins):
             if join.drone in rose and join.phase == "waiting" and self.state[join.drone] == "taking_off":
-                join.phase = "takeoff"
+                join.phase, join.rose_at = "takeoff", self.clock.now()
             if join.phase == "takeoff" and self.state[join.drone] == "taking_off" and not self._risen(join, pos):
                 continue
             if join.phase == "transit" and self.state[join.drone] == "flying":
