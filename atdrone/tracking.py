@@ -72,6 +72,7 @@ def _store_lock(uri: str) -> Iterator[None]:
 
 
 EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}  # MLflow's model-training view
+VIEW_REFRESH_S = 60.0  # while a top-level run logs, its experiment's view is written again at most this often
 CHAMPION = "champion"
 
 
@@ -96,6 +97,8 @@ class Tracker:
         mlflow.set_tracking_uri(self.uri)
         with _store_lock(self.uri):  # two processes creating one sqlite store race on its schema
             mlflow.MlflowClient().search_experiments(max_results=1)
+        self._top: tuple[str, str] | None = None  # the top-level run in progress: its id and its experiment's
+        self._view_at = 0.0  # when its view was last written (time.monotonic)
 
     def experiment(self, name: str) -> str:
         """The id of experiment ``name``; a new one opens in the model-training view, artifacts beside the store."""
@@ -161,6 +164,8 @@ class Tracker:
             self.mlflow.set_experiment(experiment_id=self.experiment(experiment))
         active = self.mlflow.start_run(run_name=run_name, nested=nested, run_id=run_id, tags=dict(tags or {}))
         top = None if nested else str(active.info.experiment_id)
+        if top is not None:
+            self._top, self._view_at = (str(active.info.run_id), top), time.monotonic()
         try:
             yield active.info.run_id
         except (KeyboardInterrupt, SystemExit):
@@ -177,7 +182,19 @@ class Tracker:
     def _refresh_view_at_end(self, experiment_id: str | None) -> None:
         """At the end of a top-level run (``experiment_id`` None for a nested one): its experiment's view."""
         if experiment_id is not None:
+            self._top = None
             self._refresh_view_quietly(experiment_id)
+
+    def _refresh_view_now_and_then(self, run_id: str | None) -> None:
+        """After metrics reach the top-level run in progress (``run_id``, or the active run when None): its
+        experiment's view again when the last one is :data:`VIEW_REFRESH_S` old (a long run's new metrics)."""
+        if self._top is None or time.monotonic() - self._view_at < VIEW_REFRESH_S:
+            return
+        active = self.mlflow.active_run()
+        if (run_id or (active.info.run_id if active is not None else None)) != self._top[0]:
+            return
+        self._view_at = time.monotonic()
+        self._refresh_view_quietly(self._top[1])
 
     def end_stale_runs(self, experiment: str, tags: Mapping[str, str], keep: str | None = None) -> list[str]:
         """End as KILLED the RUNNING runs with ``tags`` (a dead attempt's), except ``keep``; their ids."""
@@ -251,10 +268,12 @@ class Tracker:
             return
         if run_id is None:
             self.mlflow.log_metrics(clean, step=step)
-            return
-        client = self.mlflow.MlflowClient()
-        stamp = int(time.time() * 1000)
-        client.log_batch(run_id, metrics=[self.mlflow.entities.Metric(k, v, stamp, step) for k, v in clean.items()])
+        else:
+            client = self.mlflow.MlflowClient()
+            stamp = int(time.time() * 1000)
+            points = [self.mlflow.entities.Metric(k, v, stamp, step) for k, v in clean.items()]
+            client.log_batch(run_id, metrics=points)
+        self._refresh_view_now_and_then(run_id)
 
     def _active_id(self) -> str:
         active = self.mlflow.active_run()
@@ -287,6 +306,7 @@ class Tracker:
         ]
         for start in range(0, len(points), 1000):  # MLflow takes at most 1,000 metrics a batch
             client.log_batch(run_id or self._active_id(), metrics=points[start : start + 1000])
+        self._refresh_view_now_and_then(run_id)
 
     def register_checkpoint(
         self, checkpoint: str | Path, name: str, score: float | None, tags: Mapping[str, str] | None = None

@@ -7,6 +7,8 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
 from atdrone.tracking import Tracker, member_series, population_columns, population_markdown, ui_link
 from atdrone.tracking_views import VIEW_TAG, key_metric_columns, read_view, runs_view_state, view_tag_value
 
@@ -112,3 +114,29 @@ def test_every_experiment_gets_the_view_and_its_link_opens_it(
     assert ui_link("population", uri).endswith(
         f"/#/experiments/{ident}/runs?viewStateShareKey=atdrone&workflowType=machine_learning"
     )
+
+
+def test_a_long_run_writes_the_view_again_as_its_top_level_run_logs(
+    tmp_path: Path, mlflow_store: Callable[[Path], str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import mlflow
+
+    from atdrone import tracking
+
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    tracker = Tracker(uri)
+    client = mlflow.MlflowClient(uri)
+    with tracker.run("population", "parent") as parent:
+        ident = client.get_run(parent).info.experiment_id
+        with tracker.run("population", "gen-0", nested=True):
+            tracker.log_metrics({"budget/env_steps": 4096.0}, step=0)
+        tracker.log_metrics({"gen/population_size": 2.0}, step=0, run_id=parent)  # under a minute: not yet
+        assert "compareRunCharts" not in read_view(client.get_experiment(ident).tags[VIEW_TAG])[1]
+        monkeypatch.setattr(tracking, "VIEW_REFRESH_S", 0.0)
+        with tracker.run("population", "gen-1", nested=True):
+            tracker.log_metrics({"pop/size": 2.0}, step=1)  # a nested run's: not a reason
+        assert "compareRunCharts" not in read_view(client.get_experiment(ident).tags[VIEW_TAG])[1]
+        tracker.log_metrics({"gen/population_size": 3.0}, step=1, run_id=parent)
+        state = read_view(client.get_experiment(ident).tags[VIEW_TAG])[1]  # the run still going
+    assert [s["name"] for s in state["compareRunSections"]] == ["gen"]
+    assert {c["metricKey"] for c in state["compareRunCharts"] if c["deleted"]} == {"budget/env_steps", "pop/size"}
