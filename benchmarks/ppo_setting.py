@@ -15,6 +15,8 @@ validation SUC is higher where the paired interval excludes 0, otherwise the one
 median wall time (equal results, less compute). The chosen setting goes into
 configs/benchmarks/paper_budget.json's ``experiment`` (``preset`` and every ``ppo`` key written
 out) by hand, with the summary committed beside it.
+With ``--cost S`` it measures instead the CPU seconds per env step of each setting's training (alternating
+rounds of S CPU-seconds, ``--rounds``) and writes ``cost.json``: what a run, and so the benchmark, costs.
 Resumable: a run whose result file exists in --out is read back, never run again; a run killed before
 its end resumes from its last save (every 32 updates) in --out/runs.
 Usage: python benchmarks/ppo_setting.py [--task 4p2e1o] [--seeds 0 1 2 3 4] [--env-steps 1048576]
@@ -40,7 +42,7 @@ from atdrone.fileio import atomic_write_text
 from atdrone.learn.ppo import ppo_config
 
 SAVE_EVERY = 32  # updates between a run's saves
-SETTINGS = {"default": ("default", {}), "paper": ("paper", {})}
+SETTINGS: dict[str, tuple[str, dict[str, Any]]] = {"default": ("default", {}), "paper": ("paper", {})}
 
 
 def _settings(items: list[str]) -> dict[str, tuple[str, dict[str, Any]]]:
@@ -153,6 +155,51 @@ def summary(settings: dict[str, tuple[str, dict[str, Any]]], rows: list[dict[str
     return out
 
 
+def cost(settings: dict[str, tuple[str, dict[str, Any]]], args: argparse.Namespace) -> dict[str, Any]:
+    """CPU seconds per env step of SP training under each setting (collection and update, ``--update-threads``),
+    from alternating rounds of at least ``--cost`` seconds of CPU each in this process; per setting the median
+    over rounds, the ratio to the first and the CPU minutes a run at ``--env-steps`` takes."""
+    from atdrone.learn.trainer import Trainer, load_train_config
+
+    trainers = {
+        name: Trainer(
+            load_train_config(
+                {
+                    "name": f"ppo_cost_{name}",
+                    "task": args.task,
+                    "seed": 0,
+                    "total_env_steps": args.env_steps,
+                    "preset": preset,
+                    "ppo": overrides,
+                    "out_dir": str(args.out / "runs"),
+                    "update_threads": args.update_threads,
+                }
+            )
+        )
+        for name, (preset, overrides) in settings.items()
+    }
+    per_step: dict[str, list[float]] = {name: [] for name in trainers}
+    for trainer in trainers.values():
+        trainer.update_once()  # warm-up
+    for _ in range(args.rounds):
+        for name, trainer in trainers.items():
+            cpu0, steps0 = time.process_time(), trainer.env_steps
+            while time.process_time() - cpu0 < args.cost:
+                trainer.update_once()
+            per_step[name].append((time.process_time() - cpu0) / (trainer.env_steps - steps0))
+    first = next(iter(per_step))
+    med = {name: float(np.median(v)) for name, v in per_step.items()}
+    return {
+        "task": args.task,
+        "update_threads": args.update_threads,
+        "rounds": args.rounds,
+        "cpu_us_per_env_step": {n: round(1e6 * v, 1) for n, v in med.items()},
+        "ratio_to_" + first: {n: round(v / med[first], 2) for n, v in med.items()},
+        "cpu_min_per_run": {n: round(v * args.env_steps / 60, 1) for n, v in med.items()},
+        "env_steps_per_run": args.env_steps,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="4p2e1o")
@@ -163,9 +210,16 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=0.0, help="stop a run's training after this (0: off)")
     parser.add_argument("--update-threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/ppo_setting"))
+    parser.add_argument("--cost", type=float, default=0.0, help="measure CPU per env step, rounds of this many s")
+    parser.add_argument("--rounds", type=int, default=5, help="alternating rounds with --cost")
     args = parser.parse_args()
     settings = _settings(args.setting)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.cost:
+        doc = cost(settings, args)
+        atomic_write_text(args.out / "cost.json", json.dumps(doc, indent=1) + "\n")
+        print(json.dumps(doc, indent=1))
+        return
     rows = [run(name, *settings[name], seed, args) for seed in args.seeds for name in settings]
     incomplete = [f"{r['setting']} s{r['seed']}" for r in rows if not r["complete"]]
     doc = summary(settings, rows) | {"task": args.task, "env_steps": args.env_steps, "episodes": args.episodes}
