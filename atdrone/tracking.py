@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -74,6 +75,14 @@ def _store_lock(uri: str) -> Iterator[None]:
 EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}  # MLflow's model-training view
 VIEW_REFRESH_S = 60.0  # while a top-level run logs, its experiment's view is written again at most this often
 CHAMPION = "champion"
+
+
+def metric_key(name: str) -> str:
+    """``name`` as MLflow takes a metric key: a character it refuses (a protocol's ``+``) becomes ``_``."""
+    return _NOT_IN_KEYS.sub("_", name)
+
+
+_NOT_IN_KEYS = re.compile(r"[^\w/.\- :]")
 
 
 def artifact_root(uri: str) -> str | None:
@@ -257,7 +266,7 @@ class Tracker:
         ``once``: skip the metrics that already have a point at ``step`` (a resumed run
         logging a step its dead attempt logged: the points are one batch, so all or none).
         """
-        clean = {k: float(v) for k, v in metrics.items() if v is not None and v == v}
+        clean = {metric_key(k): float(v) for k, v in metrics.items() if v is not None and v == v}
         if once and clean:
             client = self.mlflow.MlflowClient()
             target = run_id or self._active_id()

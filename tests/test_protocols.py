@@ -129,3 +129,50 @@ def test_evaluate_splits_plays_every_seat_set_and_prints_one_row_per_k(
     for k, group in episodes.groupby("k"):
         assert table.set_index("k").loc[k, "SUC"] == pytest.approx(100.0 * group["success"].mean())
     assert "seat_sets" in out and "splits.csv" in out
+
+
+def test_a_service_run_evaluates_its_population_on_a_protocol_named_where_a_zoo_goes(local_ray, tmp_path, mlflow_store):
+    """final_zoo "zoo3+drop": the population is played with zoo3's drones and the drop of every episode; the
+    population table, the registry and MLflow carry the events' metrics (MLflow's keys with ``+`` as ``_``)."""
+    import mlflow
+
+    from atdrone.registry import Registry
+    from atdrone.service.driver import run_experiment
+    from atdrone.service.experiment import load_experiment
+
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    cfg = load_experiment(
+        {
+            "name": "proto",
+            "task": "4p2e1o",
+            "algorithm": "sp",
+            "generations": 1,
+            "updates_per_generation": 1,
+            "num_workers": 1,
+            "eval_episodes": 4,
+            "final_zoo": "zoo3+drop",
+            "final_episodes": 12,
+            "select_zoo": "",
+            "gif": False,
+            "out_dir": str(tmp_path),
+            "ppo": {
+                "epochs": 1,
+                "entity_dim": 8,
+                "hidden": 16,
+                "minibatch_size": 64,
+                "num_envs": 4,
+                "rollout_steps": 16,
+            },
+        }
+    )
+    run_experiment(cfg, tracking_uri=uri, progress=False)
+    population = pd.read_csv(tmp_path / "proto" / "population.csv")
+    assert {"zoo3+drop_SUC", "zoo3+drop_EVT", "zoo3+drop_SUC_post", "zoo3+drop_REC"} <= set(population.columns)
+    assert (population["zoo3+drop_EVT"] > 0).all()  # episodes lived to their drop: the events were played
+    members = Registry(tmp_path / "proto" / "registry.db", create=False).members()
+    assert all("zoo3+drop/EVT" in m for m in members["metrics"])
+    client = mlflow.MlflowClient(uri)
+    keys = {
+        k for r in client.search_runs([client.get_experiment_by_name("proto").experiment_id]) for k in r.data.metrics
+    }
+    assert any(k.startswith("zoo3_drop_") for k in keys), sorted(keys)

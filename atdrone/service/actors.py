@@ -24,6 +24,7 @@ import ray
 import torch
 
 from atdrone.config import TaskConfig
+from atdrone.envs.events import EventPlan
 from atdrone.learn.learner import Learner, LearnerSpec
 from atdrone.learn.ppo import PPOConfig
 from atdrone.learn.rollout import Fragment, RolloutWorker
@@ -194,10 +195,23 @@ class RolloutWorkerActor:
         var = float(returns.var(ddof=1)) if len(returns) > 1 else 0.0
         return {**metrics(records), "REW_var": var, "steps": int(records["length"].sum())}
 
-    def evaluate_zoo(self, learner: MemberSpec, zoo: Sequence[MemberSpec], episodes: int, seed: int) -> dict:
-        """SUC/COL/AST/REW of ``learner`` with partners drawn uniformly from ``zoo``."""
+    def evaluate_zoo(
+        self,
+        learner: MemberSpec,
+        zoo: Sequence[MemberSpec],
+        episodes: int,
+        seed: int,
+        events: EventPlan | None = None,
+    ) -> dict:
+        """SUC/COL/AST/REW of ``learner`` with partners drawn uniformly from ``zoo`` (and, with a protocol's
+        ``events``, its team events played and their metrics)."""
         records = run_episodes(
-            self.policies.get(learner), self.task, [self.policies.get(s) for s in zoo], episodes, seed=seed
+            self.policies.get(learner),
+            self.task,
+            [self.policies.get(s) for s in zoo],
+            episodes,
+            seed=seed,
+            events=events,
         )
         return metrics(records)
 

@@ -54,6 +54,7 @@ from atdrone.service.actors import (
 )
 from atdrone.service.experiment import ExperimentConfig, registry_name
 from atdrone.teams.partners import LEARNER_COPY, PartnerDistribution, describe
+from atdrone.teams.protocols import zoo_of
 
 # streams of derive_seed(experiment seed, generation, STREAM, index)
 LEARNER_STREAM, EVAL_STREAM, RNG_STREAM = 0, 1, 2
@@ -420,15 +421,19 @@ class Coordinator:
     def evaluate_population(
         self, zoo_name: str, episodes: int, members: Sequence[str] | None = None
     ) -> dict[str, dict[str, float]]:
-        """Every population member (or ``members``) with partners from a zoo: SUC/COL/AST/REW per member."""
-        zoo = load_zoo(zoo_name, self.task)
+        """Every population member (or ``members``) with partners from a zoo, or a protocol's zoo with its team
+        events: SUC/COL/AST/REW (and the events' metrics) per member."""
+        zoo_base, events = zoo_of(zoo_name)
+        zoo = load_zoo(zoo_base, self.task)
         if zoo.missing:
             return {}
         specs = list(zoo.spec.members)
         population = self.population() if members is None else list(members)
         self._progress = f"zoo: {len(population)} member(s) on {zoo_name}, {episodes} episodes each"
         calls = [
-            self.workers[i % len(self.workers)].evaluate_zoo.remote(self.member_spec(m), specs, episodes, 4242 + i)
+            self.workers[i % len(self.workers)].evaluate_zoo.remote(
+                self.member_spec(m), specs, episodes, 4242 + i, events
+            )
             for i, m in enumerate(population)
         ]
         results = dict(zip(population, ray.get(calls), strict=True))

@@ -79,7 +79,8 @@ class ExperimentConfig:
     (the length of its learning-rate schedule); num_workers: rollout workers sharing
     ppo.num_envs. eval_episodes: episodes per evaluation match. final_zoo /
     final_episodes: the zoo every member is evaluated on at the end (empty: skip), a test
-    zoo: reported, never used to choose. select_zoo: the zoo the run's best member and the
+    zoo: reported, never used to choose; a protocol of team events (``zoo3+swap``) may stand
+    wherever a zoo is named, and is played with its zoo. select_zoo: the zoo the run's best member and the
     MLflow champion are chosen on, final_episodes episodes per member (default the
     validation zoo; it must share no drone with Zoos 1-3; empty: the last member).
     ppo: overrides of the PPO preset. learner_gpus: GPUs each learner actor asks Ray
@@ -172,8 +173,9 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
 def _check_disjoint(zoo: str) -> None:
     """ConfigError at select_zoo when the selection zoo shares a drone with a test zoo (selection on the test set)."""
     from atdrone.teams.pools import shared_members
+    from atdrone.teams.protocols import zoo_of
 
-    shared = shared_members(load_zoo(zoo))
+    shared = shared_members(load_zoo(zoo_of(zoo)[0]))
     if shared:
         raise ConfigError(
             "select_zoo",
@@ -206,9 +208,12 @@ def _check_episode_counts(section: Any, algorithm: str) -> None:
 
 
 def _check_zoo(zoo: str, path: str, task: str) -> None:
-    """ConfigError at ``path`` unless every member of ``zoo`` can be built on ``task`` (files present and intact)."""
+    """ConfigError at ``path`` unless every member of ``zoo`` (or of a protocol's zoo) can be built on ``task``
+    (files present and intact)."""
+    from atdrone.teams.protocols import zoo_of
+
     try:
-        load_zoo(zoo, task).check()
+        load_zoo(zoo_of(zoo)[0], task).check()
     except (ConfigError, PolicyError) as exc:
         raise ConfigError(path, str(exc)) from None
 

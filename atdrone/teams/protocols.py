@@ -74,6 +74,15 @@ def is_protocol(name_or_path: str | Path) -> bool:
     return isinstance(document, dict) and "events" in document
 
 
+def zoo_of(name: str) -> tuple[str, EventPlan | None]:
+    """The zoo behind a zoo name and the team events to play with it: a protocol's zoo and plan, or the zoo
+    itself and None (wherever a zoo is named, a protocol may be)."""
+    if is_protocol(name):
+        protocol = load_protocol(name)
+        return protocol.zoo, protocol.plan
+    return name, None
+
+
 def load_protocol(name_or_path: str | Path | Protocol) -> Protocol:
     """A protocol by name (configs/protocols/<name>.json) or path; ConfigError naming the field when invalid."""
     if isinstance(name_or_path, Protocol):
