@@ -524,17 +524,17 @@ def test_every_drone_lands_softly_after_a_fault_on_a_busy_host(
 def test_a_link_lost_for_good_gets_land_commands_until_the_end_and_is_reported_lost(
     tmp_path: Path, registry_member: tuple[str, str], busy_host: None
 ) -> None:
-    """A drone whose link dies is marked lost (not the whole fleet): it gets the land command on every tick it
-    is lost, the others land; its own firmware cuts its motors (no keep-alive reaches it), and the job says it
-    did not land and exits non-zero."""
-    result = fly(tmp_path, registry_member, horizon=80, faults=[{"kind": "link_loss", "at": FAULT_AT, "drone": "cf3"}])
+    """A learner drone whose link dies is marked lost (not the whole fleet): it gets the land command on every tick
+    it is lost, the others land; its own firmware cuts its motors (no keep-alive reaches it), and the job says it
+    did not land and exits non-zero. (A partner drone's lost link drops it alone: tests/test_deploy_backup.py.)"""
+    result = fly(tmp_path, registry_member, horizon=80, faults=[{"kind": "link_loss", "at": FAULT_AT, "drone": "cf1"}])
     frame = ticks(result)
-    lost = frame[(frame.drone == "cf3") & (frame.state == "lost")]
-    assert len(lost) and (frame[frame.drone != "cf3"].state != "lost").all()
-    assert result.sent["land"] >= len(lost)
-    assert result.endings["cf3"].startswith("lost") and "not landed: cf3 lost" in result.ended_early
-    assert "estop_watchdog" in {w for _, w in result.fleet["cf3"]["history"]}
-    landed_softly(result, exclude=("cf3",))
+    lost = frame[(frame.drone == "cf1") & (frame.state == "lost")]
+    assert len(lost) and (frame[frame.drone != "cf1"].state != "lost").all()
+    assert result.sent["land"] >= len(lost) and result.ended_early.startswith("shield: link_lost")
+    assert result.endings["cf1"].startswith("lost") and "not landed: cf1 lost" in result.ended_early
+    assert "estop_watchdog" in {w for _, w in result.fleet["cf1"]["history"]}
+    landed_softly(result, exclude=("cf1",))
 
 
 def test_a_host_paused_past_the_dead_man_limit_is_cut_by_the_firmware(
