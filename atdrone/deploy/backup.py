@@ -42,7 +42,7 @@ from atdrone.deploy.links import LinkView
 from atdrone.deploy.sequence import COLUMN_CLEAR
 from atdrone.deploy.shield import HOLD_MARGIN, Obstacles, ShieldConfig, ellipsoid_distance, obstacle_distance
 from atdrone.deploy.team import Team
-from atdrone.deploy.transit import MARGIN
+from atdrone.deploy.transit import LEASH, MARGIN
 from atdrone.envs.geometry import Geometry
 
 JOIN_ARRIVED = 0.1  # m: a backup this close to its spawn takes the slot
@@ -339,8 +339,6 @@ class Backups:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The next reference (2,), setpoint (3,) and velocity (3,) of a straight line at ``goto_speed`` from
         ``ref`` (kept within a step of the drone) to ``target``."""
-        from atdrone.deploy.episode import LEASH
-
         gap = ref - pos[:2]
         if math.hypot(*gap) > LEASH:
             ref = pos[:2] + gap * (LEASH / math.hypot(*gap))

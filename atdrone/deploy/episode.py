@@ -21,6 +21,7 @@ from atdrone.deploy.landing import Landing
 from atdrone.deploy.sequence import Sequencing
 from atdrone.deploy.shield import HOLD_MARGIN, Action, ShieldConfig, ShieldDecision, geofence
 from atdrone.deploy.team import PolicyRunner, Team
+from atdrone.deploy.transit import LEASH
 from atdrone.envs.core import CAPTURED, COLLISION, TIMEOUT
 from atdrone.envs.evaders import EscapeParams
 from atdrone.envs.events import absent_judgement, hide_absent, parked
@@ -29,7 +30,6 @@ from atdrone.envs.observation import Arena, Poses
 from atdrone.envs.rules import EvaderMove, evader_step, judge
 
 OUTCOMES = {CAPTURED: "captured", COLLISION: "collision", TIMEOUT: "timeout"}
-LEASH = 0.15  # m: a reference never runs further ahead of its drone than this
 CAPTURE_SLACK = 0.05  # m: evader drones count as captured this far beyond the separation ellipsoids
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from atdrone.deploy.shield import Obstacles, ellipsoid_distance, obstacle_distance
 
 MARGIN = 1.3  # separation ellipsoids kept between drones on a planned transit
+LEASH = 0.15  # m: a reference the loop moves (a policy's, a backup's line) never runs further ahead of its drone
 
 
 class TransitBlocked(RuntimeError):
