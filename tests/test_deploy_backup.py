@@ -32,7 +32,8 @@ from test_deploy import (  # noqa: F401  (the fixtures)
 from test_deploy_health import tick
 
 from atdrone.config import ConfigError, load_task
-from atdrone.deploy.backup import JOIN_ARRIVED, backup_spawn
+from atdrone.deploy.backup import JOIN_ARRIVED, Backups, backup_spawn
+from atdrone.deploy.clock import ScaledClock
 from atdrone.deploy.config import load_deploy
 from atdrone.deploy.flightlog import format_summary
 from atdrone.deploy.job import run_deploy
@@ -301,3 +302,52 @@ def test_a_backup_called_late_in_an_episode_takes_the_slot_for_the_next(
     assert list(took.drone) == ["cf7"] and (took.step == -1).all()  # between episodes, not in one
     flown = frame[(frame.drone == "cf7") & (frame.episode == 1) & (frame.step >= 0)]
     assert len(flown) >= 20 and (flown.state == "flying").all()
+
+
+class _Flight(Backups):
+    """The backups' part of a flight with nothing behind it: commands and states recorded."""
+
+    def __init__(self, cfg: Any) -> None:
+        self.cfg, self.task, self.shield_cfg = cfg, TASK, cfg.shield
+        self.pursuers, self.evader_drones = ["cf1", "cf2", "cf3", "cf4"], ["cf5", "cf6"]
+        self.names = [*self.pursuers, *self.evader_drones, "cf7"]
+        self.partner_slots = np.array([2, 3])
+        self.state = dict.fromkeys(self.names, "flying") | {"cf7": "idle"}
+        self.notes: dict[str, list[str]] = {}
+        self.hold_at = np.full((7, 3), np.nan)
+        self.prev_setpoint = np.full((7, 3), np.nan)
+        self.said: list[str] = []
+        self.progress = self.said.append
+        self.episode, self.t0, self.tick_t, self.dt = 0, 0.0, 5.0, 0.1
+        self.landed: list[str] = []
+        self.clock = ScaledClock(1.0)
+        self._init_backups()
+
+    def _land(self, names: Any) -> None:
+        self.landed += list(names)
+        self._set_state(names, "landing")
+
+    def _set_state(self, names: Any, state: str) -> None:
+        for n in names:
+            self.state[n] = state
+
+
+def test_a_backup_too_low_after_its_takeoff_lands_and_the_slot_stays_empty(
+    tmp_path: Path,
+    registry_member: tuple[str, str],  # noqa: F811
+) -> None:
+    flight = _Flight(load_deploy(sim_doc(tmp_path, registry_member, backups=BACKUP["backups"])))
+    flight._drop("cf3", "battery")
+    assert flight.landed == ["cf3"] and not flight.present[2] and flight._alone()[2]
+    (join,) = flight.joins
+    assert join.drone == "cf7" and join.slot == 2
+    join.phase = "takeoff"
+    flight.state["cf7"] = "taking_off"
+    pos = np.zeros((7, 3))
+    pos[6, 2] = 0.1  # it rose 0.1 m of the 0.5 m
+    assert not flight._risen(join, pos)
+    assert flight.landed == ["cf3", "cf7"] and flight.joins == [] and not flight.present[2]
+    assert "failed its takeoff (at 0.10 m)" in flight.team_changes[0]["backup_end"]
+    assert flight.team_changes[0]["took_slot_t"] is None and "cf7" in flight.retired
+    flight._drop("cf4", "battery")  # the only backup is spent: the next dropped slot stays empty
+    assert flight.joins == [] and flight.team_changes[1]["backup"] == ""
