@@ -192,12 +192,13 @@ TINY_BENCHMARK_PPO = {
 
 def tiny_benchmark(tmp_path: Path, name: str) -> dict[str, Any]:
     """A benchmark config of one method, one task, two seeds, one update per run, no best responses: two training
-    cells and a floor, one at a time (the benchmark tests')."""
+    cells and a floor, one at a time, each learner played on zoo3+swap too (the benchmark tests')."""
     return {
         "name": name,
         "tasks": ["4p2e1o"],
         "seeds": [0, 1],
         "zoos": ["zoo1"],
+        "protocols": ["zoo3+swap"],
         "env_steps": 128,
         "updates_per_generation": 1,
         "eval_episodes": 4,

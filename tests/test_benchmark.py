@@ -24,7 +24,7 @@ from atdrone.benchmark.cells import load_benchmark
 from atdrone.benchmark.job import STATE_FILE, run_benchmark
 
 REPO = Path(__file__).resolve().parent.parent
-CSVS = ("evaluations", "table", "paired", "normalised", "aggregate", "improvement")
+CSVS = ("evaluations", "table", "paired", "normalised", "aggregate", "improvement", "protocols")
 
 
 TWO_NODES = """

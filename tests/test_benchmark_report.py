@@ -112,6 +112,31 @@ def test_the_report_holds_table_2_paired_differences_normalised_scores_and_aggre
     assert again["report.md"].read_text() == text
 
 
+def test_protocol_results_make_their_own_table_and_leave_the_others_as_they_were(made_up) -> None:
+    """Records with ``protocols`` (a config's team-change protocols): protocols.csv and its report section hold
+    each method's mean and std over seeds; Table 2 and the aggregates are the same as without them."""
+    cfg, records = made_up
+    before = {k: p.read_bytes() for k, p in write_report(cfg, records).items() if k.endswith(".csv")}
+    with_events = []
+    for r in records:
+        r = dict(r)
+        if r["cell"]["kind"] == "method":
+            suc = 20.0 + r["cell"]["seed"]
+            r["protocols"] = {
+                "zoo3+swap": {"SUC": suc, "SUC_post": suc - 5, "REC": 40.0 + r["cell"]["seed"], "EVT": 90.0}
+            }
+        with_events.append(r)
+    files = write_report(cfg, with_events)
+    for name, data in before.items():
+        assert files[name].read_bytes() == data, name
+    table = pd.read_csv(files["protocols.csv"])
+    row = table[(table.method == "hola") & (table.task == "4p2e5o")].iloc[0]
+    seeds = [r["cell"]["seed"] for r in records if r["name"].startswith("hola-4p2e5o")]
+    assert row["n"] == len(seeds) and row["SUC_mean"] == pytest.approx(20.0 + np.mean(seeds))
+    assert row["REC_std"] == pytest.approx(np.std(seeds, ddof=1))
+    assert "## Team changes" in files["report.md"].read_text()
+
+
 def test_weights_are_chosen_on_the_validation_zoo_and_load_by_name(made_up, monkeypatch) -> None:
     cfg, records = made_up
     for r in records:  # seed 2 is best on validation, seed 0 on every test zoo: validation decides
@@ -158,6 +183,7 @@ def test_cells_cover_methods_best_responses_and_floors_at_the_budget(tmp_path: P
         ({"references": ["fcp"]}, "references"),
         ({"experiment": {"seed": 3}}, "experiment.seed"),
         ({"seeds": [1, 1]}, "seeds"),
+        ({"protocols": ["zoo3"]}, "protocols[0]"),
     ],
 )
 def test_a_bad_benchmark_is_refused_naming_the_key(change: dict[str, Any], where: str) -> None:

@@ -230,6 +230,22 @@ def run_cell(
         result = evaluate(policy, cell.task, zoo, episodes=cfg.eval_episodes, seeds=[EVAL_SEED + cell.seed])
         metrics[zoo] = result.mean
         bench_eval += int(result.records["length"].sum())
+    if cell.kind == "method" and cfg.protocols:  # the team-change protocols: reported apart, no bounds
+        from atdrone.teams.protocols import load_protocol
+
+        record["protocols"] = {}
+        for name in cfg.protocols:
+            protocol = load_protocol(name)
+            result = evaluate(
+                policy,
+                cell.task,
+                protocol.zoo,
+                episodes=cfg.eval_episodes,
+                seeds=[EVAL_SEED + cell.seed],
+                protocol=protocol,
+            )
+            record["protocols"][name] = result.mean
+            bench_eval += int(result.records["length"].sum())
     wall = time.perf_counter() - t0
     budget["benchmark_eval_env_steps"] = bench_eval
     record.update(

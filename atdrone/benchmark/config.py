@@ -29,6 +29,9 @@ the aggregates use ``seeds`` only, the per-cell tables and paired differences ev
 smoke_test: the benchmark only checks that the grid runs end to end; its report says it ranks
 nothing, and a HOLA method planned for fewer than :data:`MIN_HOLA_GENERATIONS` hypergraph
 generations is marked there instead of refused (:func:`check_hola_generations`).
+protocols: protocols of team events (configs/protocols, e.g. ``zoo3+swap``) every method's
+final learner is also played on (its record's ``protocols``; the report's team-change table);
+they have no bounds and take no part in the other tables.
 """
 
 from __future__ import annotations
@@ -104,6 +107,7 @@ class BenchmarkConfig:
     results_dir: str = field(default="", metadata=OPTIONAL)
     extra_seeds: tuple[ExtraSeeds, ...] = ()
     smoke_test: bool = False
+    protocols: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The document form (what ``config.json`` of the benchmark folder keeps)."""
@@ -113,8 +117,9 @@ class BenchmarkConfig:
         """What makes two configs the same benchmark: every key but where its files go, and the partners:
         the zoo manifest's version of each task (a drone retrained is another benchmark, never mixed in)."""
         doc = {k: v for k, v in self.to_dict().items() if k not in PLACEMENT + LABELS}
-        if not doc["extra_seeds"]:  # a config without them keeps the digest it had before they existed
-            del doc["extra_seeds"]
+        for key in ("extra_seeds", "protocols"):  # a config without them keeps the digest it had before them
+            if not doc[key]:
+                del doc[key]
         doc["zoo_versions"] = self.zoo_versions()
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -248,9 +253,20 @@ def _check(cfg: BenchmarkConfig) -> None:
             raise ConfigError(where, "name at least one method, task and seed")
         for j, seed in enumerate(extra.seeds):
             check_seed(seed, f"{where}.seeds[{j}]")
+    for i, name in enumerate(cfg.protocols):
+        _check_protocol(name, f"protocols[{i}]", cfg.tasks)
     for key in ("name", "task", "seed", "algorithm", "out_dir", "generations"):
         if key in cfg.experiment:
             raise ConfigError(f"experiment.{key}", "set by the benchmark for every cell")
+
+
+def _check_protocol(name: str, path: str, tasks: Sequence[str]) -> None:
+    """ConfigError at ``path`` unless ``name`` is a protocol whose zoo every task can play."""
+    from atdrone.teams.protocols import is_protocol, load_protocol
+
+    if not is_protocol(name):
+        raise ConfigError(path, f"{name!r} is not a protocol of team events (configs/protocols, or a JSON path)")
+    _check_zoo(load_protocol(name).zoo, path, tasks)
 
 
 def _check_zoo(zoo: str, path: str, tasks: Sequence[str]) -> None:

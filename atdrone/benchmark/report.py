@@ -37,6 +37,7 @@ from atdrone.benchmark.bounds import make_bound
 from atdrone.benchmark.config import HOLA_ALGORITHMS, BenchmarkConfig, check_hola_generations
 from atdrone.benchmark.report_figures import FIGURES, family_figure, profile_figure, suc_figure
 from atdrone.benchmark.report_paper import CLAIMS, orderings, side_by_side
+from atdrone.benchmark.report_protocols import protocol_table, protocols_text
 from atdrone.benchmark.report_text import BUDGET_KEYS, Tables, markdown, order
 from atdrone.benchmark.stats import (
     PROFILE_TAUS,
@@ -272,7 +273,11 @@ def write_report(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dic
         ("orderings", tables.claims),
     ):
         files[f"{name}.csv"] = atomic_write_bytes(out / f"{name}.csv", data.to_csv(index=False).encode())
-    files["report.md"] = atomic_write_text(out / "report.md", markdown(cfg, tables))
+    changes = protocol_table(records)
+    text = markdown(cfg, tables) + "".join(f"{line}\n" for line in protocols_text(changes, cfg.eval_episodes))
+    if len(changes):
+        files["protocols.csv"] = atomic_write_bytes(out / "protocols.csv", changes.to_csv(index=False).encode())
+    files["report.md"] = atomic_write_text(out / "report.md", text)
     for task in cfg.tasks:
         files[f"suc_{task}.png"] = suc_figure(cfg, tables.table, task, out / f"suc_{task}.png")
     for name, (title, family) in FIGURES.items():
