@@ -239,15 +239,12 @@ def happen(
     worked out on their rows only; what they changed (each (B, P)), None when nothing was due. The approach
     reward of a changed team starts from its new distances (``distances``: positions (n, N, 2) ->
     nearest-pursuer distance of each evader (n, E))."""
-    at = state.ev_step == state.t[:, None]
-    if not at.any():
-        return None
     s = state
-    rows = np.flatnonzero(at.any(1))
-    fire = due(s.t[rows], s.ev_step[rows], s.ev_slot[rows], running[rows])
-    rows, fire = rows[fire.any(1)], fire[fire.any(1)]
+    fire_all = due(s.t, s.ev_step, s.ev_slot, running)
+    rows = np.flatnonzero(fire_all.any(1))
     if not len(rows):
         return None
+    fire = fire_all[rows]
     P = s.present.shape[1]
     pos_p, heading_p = s.pos[rows, :P], s.heading[rows, :P]
     now, change = apply(
@@ -258,10 +255,9 @@ def happen(
     moved = rows[(change.dropped | change.joined).any(1)]  # a swap moves no drone
     if len(moved):
         s.prev_dist[moved] = np.where(s.captured[moved], 0.0, distances(s.pos[moved]))
-    full = {k: np.zeros(s.present.shape, dtype=bool) for k in ("swapped", "dropped", "joined")}
-    for k, v in full.items():
-        v[rows] = getattr(change, k)
-    return TeamChange(**full)
+    full = np.zeros((3, *s.present.shape), dtype=bool)
+    full[:, rows] = (change.swapped, change.dropped, change.joined)
+    return TeamChange(*full)
 
 
 def refresh_obstacles(
