@@ -363,8 +363,9 @@ def faultfs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_a_full_disk_then_a_read_only_store_end_in_one_line_with_exit_1_and_the_resume_equals_an_uninterrupted_run(
     local_ray, tmp_path, mlflow_store, reference, faultfs
 ):
-    """The run folder's disk fills up once generation 0 is saved (every write there fails with ENOSPC, in the
-    driver and in its own Ray's actors), then the resume finds the MLflow store on a read-only file system (EROFS).
+    """The run folder's disk fills up once generation 0 is saved (every write of the driver there fails with
+    ENOSPC; it is joined to the session's Ray, whose actors write on), then the resume finds the MLflow store on a
+    read-only file system (EROFS).
     Each driver ends with one line naming the fault and what was kept, exit 1, no traceback; with the disk and
     the store writable again the run resumes and ends as an uninterrupted run."""
     uri = mlflow_store(tmp_path / "store" / "mlflow.db")
@@ -373,8 +374,7 @@ def test_a_full_disk_then_a_read_only_store_end_in_one_line_with_exit_1_and_the_
     config.write_text(json.dumps(doc))
     run_dir = tmp_path / "out" / "faults_t"
     trigger = tmp_path / "armed"
-    base = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
-    base.update(MLFLOW_TRACKING_URI=uri, LD_PRELOAD=str(faultfs), FAULTFS_TRIGGER=str(trigger))
+    base = {**os.environ, "MLFLOW_TRACKING_URI": uri, "LD_PRELOAD": str(faultfs), "FAULTFS_TRIGGER": str(trigger)}
     kept = (
         r"kept [12] completed generation\(s\) \(the registry, member checkpoints; the unfinished one is played again\)"
     )
@@ -384,7 +384,8 @@ def test_a_full_disk_then_a_read_only_store_end_in_one_line_with_exit_1_and_the_
     ]
     for folder, code, ready, words in faults:
         env = {**base, "FAULTFS_DIR": str(folder), "FAULTFS_ERRNO": code}
-        command = [sys.executable, "-m", "atdrone.cli", "train", str(config), "--no-progress", "--resume"]
+        command = [sys.executable, "-m", "atdrone.cli", "train", str(config), "--address", local_ray, "--no-progress"]
+        command.append("--resume")
         proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 240
         while not ready():
@@ -394,6 +395,7 @@ def test_a_full_disk_then_a_read_only_store_end_in_one_line_with_exit_1_and_the_
         trigger.touch()
         _, err = proc.communicate(timeout=240)
         trigger.unlink()
+        _wait_for_the_dead_drivers_actors("faults_t")
         assert proc.returncode == 1, err
         assert "Traceback" not in err, err
         last = err.strip().splitlines()[-1]
