@@ -26,7 +26,6 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -117,11 +116,14 @@ class Landing:
     ) -> None:
         raise NotImplementedError
 
-    if TYPE_CHECKING:  # the backups' part of the flight (no runtime stubs: they would shadow it)
+    def _alone(self) -> np.ndarray:
+        """(D,) the drones a low battery or lost link drops alone: none, unless the flight's backups part (before
+        this one in a flight's bases) says otherwise."""
+        return np.zeros(len(self.names), dtype=bool)
 
-        def _alone(self) -> np.ndarray: ...
-
-        def _drop(self, name: str, why: str) -> None: ...
+    def _drop(self, name: str, why: str) -> None:
+        """Drop ``name`` alone (the backups' part of a flight does; with no drone alone it is never called)."""
+        raise NotImplementedError
 
     def _airborne(self) -> np.ndarray:
         return np.array([self.state[n] in AIRBORNE for n in self.names])
