@@ -460,11 +460,15 @@ class FixedPartners(Algorithm):
 
 
 def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path, monkeypatch, mlflow_store):
+    """A test's own algorithm runs in the service. Its final zoo is a protocol of team events, "zoo3+drop": the
+    population is played with zoo3's drones and the drop of every episode, and the population table, the registry
+    and MLflow carry the events' metrics (MLflow's keys with ``+`` as ``_``)."""
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray ships this module's classes by value
     monkeypatch.setitem(ALGORITHMS, "fixed", FixedPartners)
-    cfg = _cfg(tmp_path, "fixed_t", algorithm="fixed", generations=2, fixed={"member": "greedy"}, final_zoo="")
+    cfg = _cfg(tmp_path, "fixed_t", algorithm="fixed", generations=2, fixed={"member": "greedy"}, final_zoo="zoo3+drop")
     assert cfg.algorithm_config() == FixedPartnersConfig(member="greedy")
-    summary = run_experiment(cfg, tracking_uri=mlflow_store(tmp_path / "mlflow.db"), progress=False)
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    summary = run_experiment(cfg, tracking_uri=uri, progress=False)
     first, second = summary["reports"]
     assert second.population == [first.learners[0], second.learners[0]]
     assert second.training[0].parent == first.learners[0]
@@ -474,6 +478,15 @@ def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path
         assert set(trained.drawn) == {"zoo1:greedy|zoo1:greedy"}  # what the rollout drew, per episode
     members = Registry(tmp_path / "fixed_t" / "registry.db").members(run="fixed_t")
     assert list(members["algorithm"]) == ["fixed", "fixed"]
+    population = pd.read_csv(tmp_path / "fixed_t" / "population.csv")
+    assert {"zoo3+drop_SUC", "zoo3+drop_EVT", "zoo3+drop_SUC_post", "zoo3+drop_REC"} <= set(population.columns)
+    assert population["zoo3+drop_EVT"].max() > 0  # episodes lived to their drop: the events were played
+    assert all("zoo3+drop/EVT" in m for m in members["metrics"])
+    client = mlflow.MlflowClient(uri)
+    keys = {
+        k for r in client.search_runs([client.get_experiment_by_name("fixed_t").experiment_id]) for k in r.data.metrics
+    }
+    assert any(k.startswith("zoo3_drop_") for k in keys), sorted(keys)
     with pytest.raises(ConfigError, match=r"fixed\.colour"):
         _cfg(tmp_path, "fixed_bad", algorithm="fixed", fixed={"colour": "red"})
 
