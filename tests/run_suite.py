@@ -1,13 +1,12 @@
 """The whole test suite as `make test` runs it: the simulated flights beside everything else.
 
-The deploy flights (tests/test_deploy.py, tests/test_deploy_backup.py, tests/test_simfleet.py)
-run in real time on a scaled clock and mostly wait for it (about a third of a core); the rest
-(Ray, training, evaluation) is CPU-bound. So the flights run as their own pytest session at
-normal priority while the rest runs on three xdist workers at ``nice`` +15 (on 2 cores: its
-tests wait on Ray and subprocesses about half the time, so two workers left a core idle): the
-flights get the CPU when their clock needs it (their loop is never starved by a Ray test, as it
-could be on a shared worker), and the waiting is no longer added to the suite's time. A command
-given with ``--beside`` (``make test``: the type check, half a minute of one core from a fresh
+The deploy flights (tests/test_deploy.py, tests/test_deploy_backup.py, tests/test_simfleet.py) run in real time on a
+scaled clock and mostly wait for it (about a third of a core); the rest (Ray, training,
+evaluation) is CPU-bound. So the flights run as their own pytest session at normal
+priority while the rest runs on two xdist workers at ``nice`` +15: the flights get the CPU
+when their clock needs it (their loop is never starved by a Ray test, as it could be on a
+shared worker), and the waiting is no longer added to the suite's time. A command given
+with ``--beside`` (``make test``: the type check, half a minute of one core from a fresh
 clone) runs at the same time, at ``nice`` +15 too.
 
     python tests/run_suite.py [--beside CMD]... [PYTEST ARGS...]   (passed to both sessions)
@@ -79,7 +78,7 @@ def main(argv: list[str]) -> int:
         for i, command in enumerate(beside):
             start(command, shlex.split(command), f"beside{i}.log", nice=True)
         rest = subprocess.Popen(
-            [*pytest, "-n", "3", "--dist", "loadgroup", *(f"--ignore={f}" for f in FLIGHTS), *args],
+            [*pytest, "-n", "2", "--dist", "loadgroup", *(f"--ignore={f}" for f in FLIGHTS), *args],
             cwd=root,
             preexec_fn=_niced,
         )
