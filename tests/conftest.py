@@ -13,6 +13,8 @@ from typing import Any
 
 import pytest
 
+from atdrone.service.rayenv import STALL_TOLERANCE
+
 # Under pytest-xdist (`make test` runs `-n 2 --dist loadgroup`): the tests of a module that starts Ray run on
 # one worker (one Ray session per worker, at most two at once, each started as the service starts a local Ray:
 # its own, never another's); the deploy flights (real-time, on UDP) share one worker, so their clocks are not
@@ -34,6 +36,9 @@ _FLIGHT_MODULES = ("test_deploy", "test_simfleet")
 # start-up and for the first driver, a second or two of CPU each that the suite's tests never use.
 os.environ.setdefault("RAY_enable_worker_prestart", "0")
 os.environ.setdefault("RAY_prestart_worker_first_driver", "0")
+# and outlives a starved minute as a local start does (the suite's Rays run at nice +15 beside the flights)
+for _name, _value in STALL_TOLERANCE.items():
+    os.environ.setdefault(_name, _value)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -105,9 +110,15 @@ def local_ray(_ray_session: str) -> str:
     which a subprocess driver passes as ``address`` to join it instead of starting a Ray of its own.
 
     A test that leaves an actor holding a CPU would make every later service test wait for Ray to place its
-    workers; it fails here instead, naming what is left."""
+    workers; it fails here instead, naming what is left. So does every test after the session's Ray died (its
+    GCS or raylet gone): each would otherwise wait for Ray until its timeout."""
     import ray
 
+    node = ray._private.worker._global_node  # None when a test shut the session's Ray down (it restarts it)
+    processes = node.all_processes if node is not None else {}
+    dead = [kind for kind in ("gcs_server", "raylet") for p in processes.get(kind, []) if p.process.poll() is not None]
+    if dead:
+        pytest.fail(f"this test process's Ray died earlier ({', '.join(dead)} ended): its Ray tests cannot run")
     deadline = time.monotonic() + 60
     while (free := ray.available_resources().get("CPU", 0.0)) < ray.cluster_resources().get("CPU", 0.0):
         if time.monotonic() > deadline:

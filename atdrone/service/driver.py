@@ -43,6 +43,8 @@ from atdrone.errors import Interrupted, interrupt_on_signals
 from atdrone.population.base import GenerationReport
 from atdrone.rundir import RunError, read_json
 from atdrone.service.experiment import ExperimentConfig, registry_name
+from atdrone.service.rayclean import clean_orphans
+from atdrone.service.rayenv import STALL_TOLERANCE
 from atdrone.service.results import finish, format_summary, log_generation, model_name, select_best
 from atdrone.service.runstate import (
     REGISTRY_DIR_ENV,
@@ -81,7 +83,9 @@ def init_ray(address: str | None, num_cpus: int | None = None) -> None:
     A local Ray binds its servers (GCS, raylet, workers, agents) to the node address,
     which Ray takes from the route to the internet unless told that the node is a
     single machine; :data:`LOOPBACK_ENV` says so, for this process and every Ray
-    process it starts, so nothing of a local run listens beyond 127.0.0.1.
+    process it starts, so nothing of a local run listens beyond 127.0.0.1. A local Ray outlives a minute or
+    more without CPU (:data:`STALL_TOLERANCE`). Before it starts, the
+    processes a killed run's local Ray left behind are ended (:func:`~atdrone.service.rayclean.clean_orphans`).
     """
     import ray
 
@@ -93,10 +97,13 @@ def init_ray(address: str | None, num_cpus: int | None = None) -> None:
         ray.init(address=address, **kwargs)
     else:
         os.environ[LOOPBACK_ENV] = "0"
+        for name, value in STALL_TOLERANCE.items():  # read by the GCS and raylet this start spawns
+            os.environ.setdefault(name, value)
         from ray._private import ray_constants
 
         ray_constants.ENABLE_RAY_CLUSTER = False  # read at import: ray may have been imported before this call
         _private_token()
+        clean_orphans()  # what a killed run's local Ray left behind: ended before this one starts
         # address "local": a new Ray of this process's own, never one a `ray start` left on this machine
         ray.init(address="local", num_cpus=num_cpus or min(os.cpu_count() or 2, 8), include_dashboard=False, **kwargs)
         _private_token()
