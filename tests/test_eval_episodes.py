@@ -19,7 +19,8 @@ from atdrone.policies import GreedyPolicy, VicsekPolicy
 from atdrone.policies.base import Policy
 from atdrone.policies.neural import load_policy
 from atdrone.policies.zoo import checkpoint_path, load_zoo
-from atdrone.teams.evaluation import episode_seeds, run_episodes
+from atdrone.teams.evaluation import episode_seeds, metrics, run_episodes
+from atdrone.teams.lineups import evaluate_lineups
 from atdrone.teams.match import Match
 
 COLUMNS = ["outcome", "length", "return", "captured", "collided", "learner_slots", "partners"]
@@ -52,12 +53,19 @@ def sampling_partners() -> list[Policy]:
     return [GreedyPolicy(), VicsekPolicy(), *neural]
 
 
-def alone(learner: Policy, task: TaskConfig, partners: list[Policy], seed: int, episode: int) -> dict[str, object]:
+def alone(
+    learner: Policy,
+    task: TaskConfig,
+    partners: list[Policy],
+    seed: int,
+    episode: int,
+    lineups: np.ndarray | None = None,
+) -> dict[str, object]:
     """Episode ``episode`` of evaluation seed ``seed``, played by itself on a one-row core."""
     cfg = load_task(task)
     core_seed, match_seed = episode_seeds(seed)
     core = BatchedPursuit(cfg, num_envs=1, seed=core_seed)
-    match = Match(core, partners, seed=match_seed)
+    match = Match(core, partners, seed=match_seed, lineups=lineups)
     match.reset(episodes=np.array([episode]))
     learner.reset(np.ones(1, dtype=bool))
     for _ in range(cfg.task.task_horizon):
@@ -85,6 +93,33 @@ def test_every_episode_of_a_batched_evaluation_is_the_episode_played_alone(task:
     assert records["episode"].tolist() == list(range(5))
     reference = pd.DataFrame([alone(learner, cfg, partners, 11, e) for e in range(5)])
     pd.testing.assert_frame_equal(records[COLUMNS], reference[COLUMNS], check_dtype=False, check_exact=True)
+
+
+def test_a_lineup_per_episode_plays_exactly_those_partners_in_the_episode_played_alone() -> None:
+    partners, learner, cfg = sampling_partners(), GreedyPolicy(), short("4p2e3o")  # two partner slots
+    plan = np.array([[0, 1], [2, 3], [3, 3], [1, 0], [2, 0], [0, 0]])
+    records = run_episodes(learner, cfg, partners, episodes=6, seed=4, max_envs=4, lineups=plan)  # rows refilled
+    names = [p.name for p in partners]
+    assert records["partners"].tolist() == [f"{names[a]},{names[b]}" for a, b in plan]
+    reference = pd.DataFrame([alone(learner, cfg, partners, 4, e, plan) for e in range(6)])
+    pd.testing.assert_frame_equal(records[COLUMNS], reference[COLUMNS], check_dtype=False, check_exact=True)
+    with pytest.raises(ValueError, match="lineups must be"):
+        run_episodes(learner, cfg, partners, episodes=2, lineups=np.array([[0, 4]]))  # only 4 partners
+    with pytest.raises(ValueError, match="lineups must be"):
+        run_episodes(learner, cfg, partners, episodes=2, lineups=np.array([[0]]))  # one slot of two
+
+
+def test_lineups_evaluated_in_one_batch_each_get_their_own_episodes() -> None:
+    partners, learner, cfg = sampling_partners(), GreedyPolicy(), short("4p2e3o")
+    results = evaluate_lineups(learner, cfg, partners, [[0, 1], [2, 3]], [3, 4], seed=9)
+    records = run_episodes(learner, cfg, partners, 7, seed=9, lineups=np.array([[0, 1]] * 3 + [[2, 3]] * 4))
+    for result, rows in zip(results, (records.iloc[:3], records.iloc[3:]), strict=True):
+        assert {k: result[k] for k in ("SUC", "COL", "REW")} == {k: metrics(rows)[k] for k in ("SUC", "COL", "REW")}
+        assert result["steps"] == rows["length"].sum()
+        assert result["REW_var"] == pytest.approx(rows["return"].var(ddof=1))
+    assert results == evaluate_lineups(learner, cfg, partners, [[0, 1], [2, 3]], [3, 4], seed=9)  # run twice
+    with pytest.raises(ValueError, match="positive episode count"):
+        evaluate_lineups(learner, cfg, partners, [[0, 1]], [0])
 
 
 def test_the_batch_size_changes_no_episode_record() -> None:

@@ -492,6 +492,17 @@ def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path
 
 
 # ------------------------------------------------------------------ selection never looks at the test zoos
+def test_a_learners_matches_are_dealt_round_its_workers_and_a_repeated_team_waits_for_a_later_batch():
+    from atdrone.service.coordinator import match_batches
+
+    a1, a2, a3, b1 = ("a", "a", "p", "q"), ("a", "a", "p", "r"), ("a", "a", "q", "r"), ("b", "b", "p", "q")
+    assert match_batches([a1, a2, b1, a3], 2) == [[0, 3], [1], [2]]
+    assert match_batches([a1, a2, a3], 1) == [[0, 1, 2]]
+    assert match_batches([a1, a1, a2], 2) == [[0], [2], [1]]  # a1 twice: its second copy in a batch of its own
+    with pytest.raises(ValueError, match="at least one worker"):
+        match_batches([a1], 0)
+
+
 def test_the_best_member_is_read_off_the_selection_zoo_alone():
     table = pd.DataFrame(
         {

@@ -28,7 +28,8 @@ Settings (the ``"hola"`` section of an experiment document):
 - ``min_episodes`` / ``max_episodes`` / ``z``: each hyperedge is played
   ``min_episodes`` episodes; while a node's preference is contested (its best team
   does not beat a rival by ``z`` standard errors of the difference) both teams play as
-  many episodes again, up to ``max_episodes``.
+  many episodes again, up to ``max_episodes``. Each round's matches are one batch per
+  rollout worker (the coordinator's ``evaluate``), not one match at a time.
 - ``eta_prior`` and ``eta_centre``: rho's eta with a prior count a centred on c,
   ``(in + 2 a c) / (degree + 2 a)``; c is the candidates' mean raw eta (``"mean"``,
   the default: typical eta is about 1 / (n - 1), so a member with few hyperedges
@@ -64,6 +65,7 @@ Settings (the ``"hola"`` section of an experiment document):
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,6 +129,7 @@ class Hola(Algorithm):
         self.rho: dict[str, float] = {}
         self.drawn: dict[str, int] = {}  # episodes each member was a partner in, last generation
         self.null: dict[str, float] = {}  # rho of random weights on the same hyperedges (null_rho)
+        self.min_step_s = 0.0  # wall seconds of the last min step's matches
         self._ties = 0  # the seed of this generation's tie-breaking permutation
 
     @classmethod
@@ -206,7 +209,9 @@ class Hola(Algorithm):
         if cfg.max_hyperedges and len(edges) > cfg.max_hyperedges:
             keep = sorted(oracle.rng.choice(len(edges), size=cfg.max_hyperedges, replace=False).tolist())
             edges = [edges[i] for i in keep]
+        started = time.perf_counter()
         played, rounds = self._play(oracle, edges)
+        self.min_step_s = time.perf_counter() - started  # the matches' wall time (perf/min_step_s)
         stats = {w: self._stats(played, metric) for w, metric in WEIGHTS.items()}
         weights = {team: w for team, (w, _) in stats[cfg.weight].items()}
         tie_seed = int(oracle.rng.integers(2**32))  # ties broken by one permutation from the generation's rng
@@ -332,6 +337,7 @@ class Hola(Algorithm):
             "eval/hyperedges": float(len(played)),
             "eval/episodes": float(episodes),
             "eval/rounds": float(rounds),
+            "perf/min_step_s": self.min_step_s,
         }
         metrics.update(
             {f"eval/contested_share/{w}": r["contested_nodes"] / max(r["nodes"], 1) for w, r in resolution.items()}

@@ -32,6 +32,7 @@ from atdrone.models.checkpoint import save_checkpoint
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import MemberSpec, build_policy
 from atdrone.teams.evaluation import metrics, run_episodes
+from atdrone.teams.lineups import evaluate_lineups
 from atdrone.teams.partners import PartnerDistribution, as_sampler
 
 
@@ -179,21 +180,20 @@ class RolloutWorkerActor:
             self._reach(job, len(earlier), earlier, steps)
         return dict(self.worker.drawn) if self.worker is not None else {}
 
-    def evaluate(self, learner: MemberSpec, profile: Sequence[MemberSpec], episodes: int, seed: int) -> dict[str, Any]:
-        """SUC/COL/AST/REW of ``learner`` in the learner slots with exactly ``profile`` as partners.
-
-        Also ``REW_var`` (the per-episode returns' sample variance, for standard errors)
-        and ``steps`` (environment steps of the episodes).
-        """
-        policy = self.policies.get(learner)
-        partners = [self.policies.get(s) for s in profile]
-        fixed = np.arange(len(partners))
-        records = run_episodes(
-            policy, self.task, partners, episodes, seed=seed, sampler=lambda rng, n: np.tile(fixed, (n, 1))
+    def evaluate_lineups(
+        self,
+        learner: MemberSpec,
+        partners: Sequence[MemberSpec],
+        lineups: Sequence[Sequence[int]],
+        episodes: Sequence[int],
+        seed: int,
+    ) -> list[dict[str, Any]]:
+        """SUC/COL/AST/REW of ``learner`` in the learner slots with each lineup of ``partners`` (their indices),
+        ``episodes[i]`` episodes of lineup i, all in one batch of environments
+        (:func:`~atdrone.teams.lineups.evaluate_lineups`); with ``REW_var`` and ``steps`` per lineup."""
+        return evaluate_lineups(
+            self.policies.get(learner), self.task, [self.policies.get(s) for s in partners], lineups, episodes, seed
         )
-        returns = records["return"].to_numpy(np.float64)
-        var = float(returns.var(ddof=1)) if len(returns) > 1 else 0.0
-        return {**metrics(records), "REW_var": var, "steps": int(records["length"].sum())}
 
     def evaluate_zoo(
         self,

@@ -65,6 +65,21 @@ def derive_seed(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0] % 2**31)
 
 
+def match_batches(teams: Sequence[Team], workers: int) -> list[list[int]]:
+    """The teams' indices in batches to play at once: the teams of one learner (``team[0]``), dealt round the
+    ``workers``; a team named again in the same call goes to a later batch (each batch's matches are
+    distinct, as the registry keys a match by its team and seeds)."""
+    if workers < 1:
+        raise ValueError(f"need at least one worker, got {workers}")
+    groups: dict[tuple[str, int], list[int]] = {}
+    seen: dict[tuple[str, ...], int] = {}
+    for i, team in enumerate(teams):
+        k = seen.get(tuple(team), 0)
+        seen[tuple(team)] = k + 1
+        groups.setdefault((team[0], k), []).append(i)
+    return [idx[j::workers] for idx in groups.values() for j in range(min(workers, len(idx)))]
+
+
 def reserve_cpus(num_workers: int) -> PlacementGroup:
     """One CPU for each of a run's rollout workers, as a placement group (packed onto as few nodes as hold it):
     held for the run by whoever made it, freed with ``remove_placement_group``."""
@@ -390,8 +405,9 @@ class Coordinator:
     def evaluate(self, teams: Sequence[Team], episodes: int | Sequence[int] | None = None) -> list[MatchResult]:
         """Play each team (learner id repeated num_ctrl times + partner ids) on the workers; record the matches.
 
-        ``episodes`` per team (one count for all; default eval_episodes). Every call draws
-        fresh seeds from the generation's evaluation stream.
+        ``episodes`` per team (one count for all; default eval_episodes). The teams of one learner are
+        played in batches, one per worker (:meth:`RolloutWorkerActor.evaluate_lineups`), each with a seed
+        of its own from the generation's evaluation stream; every call draws fresh seeds.
         """
         if episodes is None or isinstance(episodes, int):
             counts = [self.cfg.eval_episodes if episodes is None else int(episodes)] * len(teams)
@@ -401,20 +417,34 @@ class Coordinator:
             raise ValueError(f"need a positive episode count per team, got {counts} for {len(teams)} teams")
         first, self.evaluated = self.evaluated, self.evaluated + len(teams)
         self._progress = f"evaluate: {len(teams)} matches, {sum(counts)} episodes ({first} matches before)"
-        seeds = [derive_seed(self.cfg.seed, self.generation, EVAL_STREAM, first + i) for i in range(len(teams))]
-        calls = [
-            self.workers[i % len(self.workers)].evaluate.remote(
-                self.member_spec(team[0]), [self.member_spec(p) for p in team[self.num_ctrl :]], n, seed
+        batches = match_batches(teams, len(self.workers))
+        seeds = [derive_seed(self.cfg.seed, self.generation, EVAL_STREAM, first + b) for b in range(len(batches))]
+        calls = []
+        for b, (batch, seed) in enumerate(zip(batches, seeds, strict=True)):
+            partners = list(dict.fromkeys(p for i in batch for p in teams[i][self.num_ctrl :]))
+            lineups = [[partners.index(p) for p in teams[i][self.num_ctrl :]] for i in batch]
+            calls.append(
+                self.workers[b % len(self.workers)].evaluate_lineups.remote(
+                    self.member_spec(teams[batch[0]][0]),
+                    [self.member_spec(p) for p in partners],
+                    lineups,
+                    [counts[i] for i in batch],
+                    seed,
+                )
             )
-            for i, (team, n, seed) in enumerate(zip(teams, counts, seeds, strict=True))
-        ]
+        played: dict[int, tuple[int, dict[str, Any]]] = {}
+        for batch, seed, out in zip(batches, seeds, ray.get(calls), strict=True):
+            played.update({i: (seed, result) for i, result in zip(batch, out, strict=True)})
         results = []
-        for team, n, seed, result in zip(teams, counts, seeds, ray.get(calls), strict=True):
+        for i, team in enumerate(teams):
+            seed, result = played[i]
             ray.get(
-                self.registry.add_match.remote(list(team), self.task.name, self.run, self.generation, [seed], n, result)
+                self.registry.add_match.remote(
+                    list(team), self.task.name, self.run, self.generation, [seed], counts[i], result
+                )
             )
             self.budget["eval_env_steps"] += int(result["steps"])
-            results.append(MatchResult(tuple(team), dict(result), n, seed))
+            results.append(MatchResult(tuple(team), dict(result), counts[i], seed))
         return results
 
     # ------------------------------------------------------------ final eval

@@ -265,12 +265,14 @@ def run_episodes(
     events: EventPlan | None = None,
     num_ctrl: int | None = None,
     seats: Sequence[int] | None = None,
+    lineups: np.ndarray | None = None,
 ) -> pd.DataFrame:
     """Play episodes 0..``episodes``-1 of ``learner`` with ``partners``; one record per episode, in episode order.
 
-    ``sampler`` picks the partner members of each episode (default: uniformly per slot); ``events``: the team
-    events of every episode; ``num_ctrl``: the learner's slots (default the task's); ``seats``: which slots,
-    fixed (default: drawn per episode).
+    ``sampler`` picks the partner members of each episode (default: uniformly per slot), or ``lineups``
+    fixes them: row e, the partners' indices of episode e; ``events``: the team events of every episode;
+    ``num_ctrl``: the learner's slots (default the task's); ``seats``: which slots, fixed (default: drawn per
+    episode).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -278,7 +280,7 @@ def run_episodes(
     n = min(episodes, max_envs)
     core_seed, match_seed = episode_seeds(seed)
     core = BatchedPursuit(cfg, num_envs=n, seed=core_seed, events=events)
-    match = Match(core, partners, seed=match_seed, sampler=sampler, num_ctrl=num_ctrl, seats=seats)
+    match = Match(core, partners, seed=match_seed, sampler=sampler, num_ctrl=num_ctrl, seats=seats, lineups=lineups)
     match.reset()  # episodes 0..n-1; a row that ends starts the next one
     learner.reset(np.ones(n, dtype=bool))
     fields = {**_FIELDS, **EVENT_FIELDS} if core.events is not None else _FIELDS

@@ -2,7 +2,7 @@
 
 For every episode of every environment a :class:`Match` draws which pursuer slots the
 learners fill (shuffled) and which partner member fills each remaining slot (drawn
-from the zoo, uniformly unless a sampler is given), steps the partners itself, and
+from the zoo, uniformly unless a sampler or a lineup per episode is given), steps the partners itself, and
 exposes the learners' slots only: observations (B, num_ctrl, obs_dim) and actions
 (B, num_ctrl). ``info["team"]`` records the team of the episodes played in the step:
 ``learner_slots`` (B, num_ctrl), ``partner_slots`` and ``partner_members``
@@ -55,6 +55,7 @@ class Match:
         shuffle_slots: bool = True,
         sampler: PartnerSampler | None = None,
         seats: Sequence[int] | None = None,
+        lineups: np.ndarray | None = None,
     ) -> None:
         self.core = core
         self.partners: list[Policy] = (
@@ -70,6 +71,17 @@ class Match:
             raise ValueError(f"{self.num_unctrl} partner slots but no partner policies")
         self.shuffle_slots = shuffle_slots and seats is None
         self.sampler = sampler or self._uniform
+        self.lineups = None if lineups is None else np.asarray(lineups, dtype=np.intp)
+        if self.lineups is not None and (
+            self.lineups.ndim != 2
+            or self.lineups.shape[1] != self.num_unctrl
+            or not len(self.lineups)
+            or not ((self.lineups >= 0) & (self.lineups < len(self.partners))).all()
+        ):
+            raise ValueError(
+                f"lineups must be (episodes, {self.num_unctrl}) indices of the {len(self.partners)} partners, "
+                f"got shape {None if self.lineups is None else self.lineups.shape}"
+            )
         self.seed = int(np.random.SeedSequence(seed).entropy)  # type: ignore[arg-type]  # with an episode key: its team
         B = core.num_envs
         order = np.arange(core.num_p)  # learners first, then partners; ``seats``: the learners' slots, fixed
@@ -108,7 +120,11 @@ class Match:
         rngs = [np.random.Generator(np.random.PCG64([int(k), self.seed])) for k in self.core.state.key[envs]]
         if self.shuffle_slots:
             self.slots[envs] = np.argsort(np.stack([rng.random(P) for rng in rngs]), axis=1)
-        if self.num_unctrl:
+        if self.num_unctrl and self.lineups is not None:  # episode e plays lineups[e] (past the last: its last)
+            drawn = self.lineups[np.minimum(self.core.state.episode[envs], len(self.lineups) - 1)]
+            self.members[envs] = drawn
+            self._count(drawn)
+        elif self.num_unctrl:
             drawn = np.concatenate([self.sampler(rng, 1) for rng in rngs])
             self.members[envs] = drawn
             self._count(drawn)
