@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import gc
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -443,7 +444,14 @@ FAULT_AT = 6.0  # s into the flight: after the takeoff, on the way to the spawn 
 
 @pytest.fixture
 def busy_host() -> Iterator[None]:
-    """Two processes spinning on the CPU beside the flight: the ground station shares a busy 2-core host."""
+    """Two processes spinning beside the flight, all on one core: the ground station (this process) shares that
+    core with two busy loops, a third of it at best. That is harsher than two busy loops on a 2-core host (two
+    thirds of a core each), the same on any machine, and leaves the other cores to the suite's other tests,
+    which two loops free to roam would starve. The simulated fleet, the drones' own hardware, leaves the core
+    for any (atdrone.deploy.simproc)."""
+    allowed = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+    if allowed:
+        os.sched_setaffinity(0, {max(allowed)})  # inherited by the loops and everything the flight starts
     procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
     try:
         yield
@@ -451,6 +459,8 @@ def busy_host() -> Iterator[None]:
         for p in procs:
             p.kill()
             p.wait()
+        if allowed:
+            os.sched_setaffinity(0, allowed)
 
 
 def landed_softly(result: Any, exclude: tuple[str, ...] = ()) -> None:

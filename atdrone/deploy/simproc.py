@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import math
 import multiprocessing
+import os
 import threading
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
@@ -47,6 +48,11 @@ def _child(
 ) -> None:
     """The child: the fleet, its ports sent up, the true poses into ``truth``, commands from ``conn``."""
     from atdrone.deploy.simfleet import SimFleet
+
+    # the drones are hardware of their own: whatever cores the ground station was confined to, the fleet may
+    # run on any the machine allows (the kernel keeps it within its cgroup's)
+    with contextlib.suppress(AttributeError, OSError):
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
 
     clock = ScaledClock(rate, t0=origin)
     fleet = SimFleet(
