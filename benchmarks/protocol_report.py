@@ -1,16 +1,20 @@
-"""Open-teaming report: learners on zoo3 and its team-event protocols, every split of the team, other team sizes.
+"""Open-teaming report: learners on Zoo 3 and its team-event protocols, every split of the team, other team sizes.
 
-Usage (after the learners are trained, e.g. ``atdrone benchmark configs/benchmarks/paper.json``, whose kept
-weights are ``weights:METHOD/TASK``):
+Usage, on the final learners of a benchmark grid (each training seed's own learner, from the cell records):
 
-    python benchmarks/protocol_report.py --methods sp hola mappo naht_d --tasks 4p2e1o 4p2e5o \
-        --episodes 500 --seeds 0 1 2 --out benchmarks/results/protocols
+    python benchmarks/protocol_report.py --cells benchmarks/results/paper_budget/cells \
+        --runs runs/benchmarks/paper_budget --methods sp hola mappo naht_d --tasks 4p2e1o 4p2e5o
 
-``--learner LABEL=POLICY`` adds a learner by any name ``atdrone evaluate`` takes (e.g. one trained with
-``"protocol": "zoo3+drop+join"`` and the same recipe without). Per learner and task it writes the SUC and
-recovery time (with 95 % intervals) on zoo3, zoo3+swap, zoo3+drop and zoo3+drop+join, the per-k table of
-every split (on zoo3), and SUC in teams of 3-6 pursuers (zoo1 partners, the learner as a cross-task
-player); report.json holds every number, report.md the tables. Cells already in report.json are kept.
+``--learner LABEL=POLICY`` adds a learner by any name ``atdrone evaluate`` takes (``{task}`` in it is the task),
+reported as one seed. Each learner is played (its evaluation seed: the benchmark's, 10,000 + its training seed,
+so every method meets the same episodes) with Zoo 3 alone and with zoo3+swap, zoo3+drop and zoo3+drop+join
+(``--episodes`` each): SUC, SUC after the event and the recovery time REC (steps from the event to the next
+capture); in every seat assignment of the task with Zoo 3 (``--split-episodes`` per assignment); and in teams of
+3, 5 and 6 pursuers with Zoo 1 (``--episodes`` each, the learner as a cross-task player). Per method and task:
+mean ± std (ddof 1) over the training seeds; the SUC a protocol costs (Zoo 3 alone minus the protocol), paired
+by seed, with a 95 % t-interval of seeds - 1 degrees of freedom; and per task and protocol, which method loses
+least, against each other method with the paired interval of the difference. Resumable: one JSON per (learner,
+task, seed) in ``<out>/cells/``. Writes ``<out>/report.md`` and ``report.json``.
 """
 
 from __future__ import annotations
@@ -20,80 +24,208 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from atdrone.benchmark.stats import over_seeds
+from atdrone.benchmark.stats import t_interval as paired_t
 from atdrone.fileio import atomic_write_text
-from atdrone.resolve import resolve
-from atdrone.teams.evaluation import evaluate
-from atdrone.teams.splits import evaluate_splits
 
-PROTOCOLS = ("zoo3", "zoo3+swap", "zoo3+drop", "zoo3+drop+join")
+PROTOCOLS = ("zoo3+swap", "zoo3+drop", "zoo3+drop+join")
 SIZES = ("configs/tasks/3p2e1o.json", "configs/tasks/5p2e1o.json", "configs/tasks/6p2e1o.json")
+WANTED = ("SUC", "COL", "EVT", "SUC_pre", "SUC_post", "COL_post", "REC", "REC_none")
+EVAL_SEED = 10_000  # the benchmark's: a learner of training seed s plays the episodes of seed EVAL_SEED + s
 
 
-def cells(label: str, policy_name: str, task: str, episodes: int, seeds: list[int]) -> dict[str, Any]:
+def play(policy_name: str, task: str, seed: int, episodes: int, split_episodes: int) -> dict[str, Any]:
     """Every number of one learner on one task."""
+    from atdrone.resolve import resolve
+    from atdrone.teams.evaluation import evaluate
+    from atdrone.teams.splits import evaluate_splits
+
     learner = resolve(policy_name).policy()
-    out: dict[str, Any] = {"learner": label, "policy": policy_name, "task": task, "protocols": {}, "sizes": {}}
-    for name in PROTOCOLS:
-        protocol = None if name == "zoo3" else name
-        summary = evaluate(learner, task, "zoo3", episodes, seeds, protocol=protocol).summary()
-        out["protocols"][name] = {k: summary[k] for k in summary if k.split("_ci95")[0] in _WANTED}
-    split = evaluate_splits(learner, task, "zoo3", episodes, seeds)
-    out["splits"] = split.per_k().reset_index().to_dict(orient="records")
+    seeds = [EVAL_SEED + seed]
+    out: dict[str, Any] = {"policy": policy_name, "task": task, "seed": seed, "episodes": episodes}
+    out["protocols"] = {}
+    for name in ("zoo3", *PROTOCOLS):
+        result = evaluate(learner, task, "zoo3", episodes, seeds, protocol=None if name == "zoo3" else name)
+        out["protocols"][name] = {k: v for k, v in result.mean.items() if k in WANTED}
+    split = evaluate_splits(learner, task, "zoo3", split_episodes, seeds)
+    out["splits"] = {
+        str(k): {"seat_sets": int(row["seat_sets"]), "episodes": int(row["episodes"]), "SUC": float(row["SUC"])}
+        for k, row in split.per_k().iterrows()
+    }
+    out["sizes"] = {}
     for size in SIZES:
-        summary = evaluate(learner, size, "zoo1", episodes, seeds, cross_task=True).summary()
-        out["sizes"][summary["task"]] = {k: summary[k] for k in ("SUC", "SUC_ci95", "COL")}
+        result = evaluate(learner, size, "zoo1", episodes, seeds, cross_task=True)
+        out["sizes"][Path(size).stem] = {k: result.mean[k] for k in ("SUC", "COL")}
     return out
 
 
-_WANTED = {"SUC", "COL", "EVT", "SUC_pre", "SUC_post", "COL_post", "REC", "REC_none"}
+def grid_learners(cells: Path, runs: Path, methods: list[str], tasks: list[str]) -> list[tuple[str, str, int, str]]:
+    """(method, task, training seed, checkpoint) of every finished grid cell of these methods and tasks."""
+    found = []
+    for path in sorted(cells.glob("*.json")):
+        record = json.loads(path.read_text())
+        cell = record.get("cell", {})
+        if cell.get("kind") == "method" and cell["method"] in methods and cell["task"] in tasks:
+            found.append((cell["method"], cell["task"], int(cell["seed"]), str(runs / record["checkpoint"])))
+    return found
 
 
-def markdown(report: list[dict[str, Any]]) -> str:
-    """The report's tables: protocols (SUC, SUC after the event, REC), splits (SUC per k), sizes (SUC)."""
-    lines = ["# Open teaming", "", "| learner | task | " + " | ".join(PROTOCOLS) + " | REC (steps) per protocol |"]
-    lines.append("|" + " --- |" * (len(PROTOCOLS) + 3))
-    for r in report:
-        suc = [f"{r['protocols'][p]['SUC']:.1f}" for p in PROTOCOLS]
-        rec = [f"{r['protocols'][p].get('REC', float('nan')):.0f}" for p in PROTOCOLS[1:]]
-        lines.append(f"| {r['learner']} | {r['task']} | " + " | ".join(suc) + f" | {', '.join(rec)} |")
-    lines += ["", "| learner | task | SUC with k learners (k = 1, 2, 3) |", "| --- | --- | --- |"]
-    for r in report:
-        lines.append(
-            f"| {r['learner']} | {r['task']} | " + ", ".join(f"{row['SUC']:.1f}" for row in r["splits"]) + " |"
-        )
-    if report:
-        sizes = list(report[0]["sizes"])
-        lines += ["", "| learner | task | " + " | ".join(sizes) + " |", "|" + " --- |" * (len(sizes) + 2)]
-    for r in report:
-        lines.append(
-            f"| {r['learner']} | {r['task']} | " + " | ".join(f"{v['SUC']:.1f}" for v in r["sizes"].values()) + " |"
-        )
+def t_interval(diffs: list[float]) -> tuple[float, float, float] | None:
+    """Mean of paired differences and its 95 % t-interval (n - 1 degrees of freedom); None under 2 values."""
+    found = paired_t(diffs)
+    return None if found["n"] < 2 else (found["diff"], *found["ci95"])
+
+
+def _ci(found: tuple[float, float, float] | None) -> str:
+    return "-" if found is None else f"{found[0]:+.1f} [{found[1]:+.1f}, {found[2]:+.1f}]"
+
+
+def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per (learner, task): seeds, protocol SUC/REC over seeds, the SUC each protocol costs (paired), splits,
+    sizes; per (task, protocol): the method that loses least and its paired comparisons."""
+    groups: dict[tuple[str, str], dict[int, dict[str, Any]]] = {}
+    for c in cells:
+        groups.setdefault((c["learner"], c["task"]), {})[c["seed"]] = c
+    out: dict[str, Any] = {"learners": {}, "least_loss": {}}
+    loss: dict[tuple[str, str, str], dict[int, float]] = {}
+    for (label, task), by_seed in sorted(groups.items()):
+        seeds = sorted(by_seed)
+        row: dict[str, Any] = {"seeds": seeds, "protocols": {}, "loss": {}, "splits": {}, "sizes": {}}
+        for name in ("zoo3", *PROTOCOLS):
+            row["protocols"][name] = {
+                m: [by_seed[s]["protocols"][name].get(m, np.nan) for s in seeds] for m in ("SUC", "SUC_post", "REC")
+            }
+        for name in PROTOCOLS:
+            lost = {s: by_seed[s]["protocols"]["zoo3"]["SUC"] - by_seed[s]["protocols"][name]["SUC"] for s in seeds}
+            loss[(task, name, label)] = lost
+            row["loss"][name] = {"per_seed": list(lost.values()), "t95": t_interval(list(lost.values()))}
+        for k in by_seed[seeds[0]]["splits"]:
+            row["splits"][k] = [by_seed[s]["splits"][k]["SUC"] for s in seeds]
+        for size in by_seed[seeds[0]]["sizes"]:
+            row["sizes"][size] = [by_seed[s]["sizes"][size]["SUC"] for s in seeds]
+        out["learners"][f"{label}|{task}"] = row
+    for task in sorted({t for t, _, _ in loss}):
+        for name in PROTOCOLS:
+            methods = {lab: v for (t, p, lab), v in loss.items() if t == task and p == name}
+            if len(methods) < 2:
+                continue
+            best = min(methods, key=lambda lab: float(np.mean(list(methods[lab].values()))))
+            versus = {}
+            for other, lost in methods.items():
+                if other == best:
+                    continue
+                common = sorted(set(lost) & set(methods[best]))
+                found = t_interval([methods[best][s] - lost[s] for s in common])
+                verdict = "undecided" if found is None or found[2] >= 0 else "less"
+                versus[other] = {"diff_t95": found, "n": len(common), "verdict": verdict}
+            out["least_loss"][f"{task}|{name}"] = {"method": best, "versus": versus}
+    return out
+
+
+def markdown(summary: dict[str, Any], episodes: int, split_episodes: int) -> str:
+    rows = summary["learners"]
+    lines = [
+        "# Open teaming",
+        "",
+        f"Each learner with Zoo 3 alone and with its team-event protocols ({episodes} episodes each, evaluation "
+        "seed 10,000 + the training seed); mean ± std (ddof 1) over the training seeds. SUC after: over the "
+        "episodes that reached their first event. REC: steps from the event to the next capture. Re-run: "
+        "`python benchmarks/protocol_report.py` (see its docstring).",
+        "",
+        "| learner | task | seeds | "
+        + " | ".join(f"SUC {p}" for p in ("zoo3", *PROTOCOLS))
+        + " | "
+        + " | ".join(f"REC {p}" for p in PROTOCOLS)
+        + " |",
+        "|" + " --- |" * (3 + 1 + 2 * len(PROTOCOLS)),
+    ]
+    for key, r in rows.items():
+        label, task = key.split("|")
+        suc = [over_seeds(r["protocols"][p]["SUC"]) for p in ("zoo3", *PROTOCOLS)]
+        rec = [over_seeds(r["protocols"][p]["REC"]) for p in PROTOCOLS]
+        lines.append(f"| {label} | {task} | {len(r['seeds'])} | " + " | ".join(suc + rec) + " |")
+    lines += [
+        "",
+        "## What a team change costs",
+        "",
+        "SUC with Zoo 3 alone minus SUC with the protocol, paired by training seed: mean [95 % t-interval].",
+        "",
+        "| learner | task | " + " | ".join(PROTOCOLS) + " |",
+        "|" + " --- |" * (2 + len(PROTOCOLS)),
+    ]
+    for key, r in rows.items():
+        label, task = key.split("|")
+        losses = [r["loss"][p] for p in PROTOCOLS]
+        cost = [_ci(lost["t95"]) if lost["t95"] else over_seeds(lost["per_seed"]) for lost in losses]
+        lines.append(f"| {label} | {task} | " + " | ".join(cost) + " |")
+    if summary["least_loss"]:
+        lines += [
+            "",
+            "Which method loses least, per task and protocol; against each other method the difference of their "
+            "losses (least - other, paired by seed) with its 95 % t-interval: *less* when the interval is below 0.",
+            "",
+            "| task | protocol | loses least | against the others |",
+            "| --- | --- | --- | --- |",
+        ]
+        for key, found in summary["least_loss"].items():
+            task, name = key.split("|")
+            versus = "; ".join(
+                f"{o}: {_ci(tuple(v['diff_t95']) if v['diff_t95'] else None)} {v['verdict']}"
+                for o, v in found["versus"].items()
+            )
+            lines.append(f"| {task} | {name} | {found['method']} | {versus} |")
+    lines += [
+        "",
+        f"## Every split of the team (Zoo 3, {split_episodes} episodes per seat assignment)",
+        "",
+        "| learner | task | SUC with k learners: k = 1, 2, 3 |",
+        "| --- | --- | --- |",
+    ]
+    for key, r in rows.items():
+        label, task = key.split("|")
+        lines.append(f"| {label} | {task} | " + ", ".join(over_seeds(v) for v in r["splits"].values()) + " |")
+    sizes = next(iter(rows.values()))["sizes"] if rows else {}
+    lines += ["", "## Other team sizes (Zoo 1)", "", "| learner | task | " + " | ".join(sizes) + " |"]
+    lines.append("|" + " --- |" * (2 + len(sizes)))
+    for key, r in rows.items():
+        label, task = key.split("|")
+        lines.append(f"| {label} | {task} | " + " | ".join(over_seeds(v) for v in r["sizes"].values()) + " |")
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", type=Path, default=None, help="a benchmark's cell records (a results cells/ folder)")
+    parser.add_argument("--runs", type=Path, default=Path("runs/benchmarks/paper_budget"), help="the grid's folder")
     parser.add_argument("--methods", nargs="*", default=["sp", "hola", "mappo", "naht_d"])
     parser.add_argument("--tasks", nargs="+", default=["4p2e1o", "4p2e5o"])
     parser.add_argument("--learner", action="append", default=[], help="LABEL=POLICY, played on every task")
     parser.add_argument("--episodes", type=int, default=500)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--split-episodes", type=int, default=100)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/protocols"))
-    args = parser.parse_args()
-    learners = [(m, f"weights:{m}/{{task}}") for m in args.methods]
-    learners += [tuple(item.split("=", 1)) for item in args.learner]  # type: ignore[misc]
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "report.json"
-    report: list[dict[str, Any]] = json.loads(path.read_text()) if path.exists() else []
-    done = {(r["learner"], r["task"]) for r in report}
-    for label, name in learners:
-        for task in args.tasks:
-            if (label, task) in done:
-                continue
-            report.append(cells(label, name.format(task=task), task, args.episodes, args.seeds))
-            atomic_write_text(path, json.dumps(report, indent=2, default=float))
-            atomic_write_text(args.out / "report.md", markdown(report))
-            print(f"{label} {task}: done", flush=True)
+    args = parser.parse_args(argv)
+    learners: list[tuple[str, str, int, str]] = []
+    if args.cells is not None:
+        learners += grid_learners(args.cells, args.runs, args.methods, args.tasks)
+    for item in args.learner:
+        label, _, name = item.partition("=")
+        learners += [(label, task, 0, name.format(task=task)) for task in args.tasks]
+    folder = args.out / "cells"
+    folder.mkdir(parents=True, exist_ok=True)
+    for label, task, seed, name in learners:
+        path = folder / f"{label}-{task}-s{seed}.json"
+        if path.exists():
+            continue
+        cell = {"learner": label, **play(name, task, seed, args.episodes, args.split_episodes)}
+        atomic_write_text(path, json.dumps(cell, indent=1, default=float))
+        print(f"{label} {task} s{seed}: SUC {cell['protocols']['zoo3']['SUC']:.1f} with zoo3", flush=True)
+    cells = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+    summary = summarise(cells)
+    atomic_write_text(args.out / "report.json", json.dumps(summary, indent=1, default=float))
+    atomic_write_text(args.out / "report.md", markdown(summary, args.episodes, args.split_episodes))
+    print((args.out / "report.md").read_text())
 
 
 if __name__ == "__main__":

@@ -1,0 +1,54 @@
+"""benchmarks/protocol_report.py's statistics: the SUC a team change costs, paired by training seed, and which
+method loses least, checked on planted cells against hand computations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def report_mod(load_script) -> ModuleType:
+    return load_script(ROOT / "benchmarks" / "protocol_report.py")
+
+
+def _cell(label: str, seed: int, zoo3: float, after: float) -> dict[str, Any]:
+    protocols = {"zoo3": {"SUC": zoo3, "REC": float("nan")}}
+    protocols.update(
+        {p: {"SUC": after, "SUC_post": after, "REC": 40.0} for p in ("zoo3+swap", "zoo3+drop", "zoo3+drop+join")}
+    )
+    return {
+        "learner": label,
+        "task": "4p2e5o",
+        "seed": seed,
+        "protocols": protocols,
+        "splits": {"1": {"SUC": 50.0}},
+        "sizes": {"6p2e1o": {"SUC": 30.0}},
+    }
+
+
+def test_the_cost_of_a_change_is_paired_by_seed_and_the_least_loss_needs_an_interval_below_zero(report_mod):
+    # A loses 10, 12, 11 points on seeds 0-2; B loses 2, 3, 2; C loses 9, 1, 5 (B - C: -7, +2, -3)
+    cells = [_cell("A", s, 60.0 + s, 60.0 + s - lost) for s, lost in enumerate((10.0, 12.0, 11.0))]
+    cells += [_cell("B", s, 50.0, 50.0 - lost) for s, lost in enumerate((2.0, 3.0, 2.0))]
+    cells += [_cell("C", s, 40.0, 40.0 - lost) for s, lost in enumerate((9.0, 1.0, 5.0))]
+    summary = report_mod.summarise(cells)
+    a = summary["learners"]["A|4p2e5o"]["loss"]["zoo3+drop"]
+    assert a["per_seed"] == [10.0, 12.0, 11.0]
+    mean, _, high = a["t95"]
+    # mean 11, sd 1, t(0.975, 2) = 4.3027: half-width 4.3027 / sqrt(3) = 2.4841
+    assert mean == pytest.approx(11.0) and high - mean == pytest.approx(2.4841, abs=1e-4)
+    least = summary["least_loss"]["4p2e5o|zoo3+drop"]
+    assert least["method"] == "B"
+    assert least["versus"]["A"]["verdict"] == "less" and least["versus"]["A"]["diff_t95"][2] < 0
+    # against C: differences -7, +2, -3, mean -8/3, sd sqrt(61/3) = 4.5092, half-width 11.20: undecided
+    diff = least["versus"]["C"]["diff_t95"]
+    assert diff[0] == pytest.approx(-8 / 3) and least["versus"]["C"]["verdict"] == "undecided"
+    assert diff[2] - diff[0] == pytest.approx(4.3027 * 4.5092 / 3**0.5, abs=1e-3)
+    md = report_mod.markdown(summary, 500, 100)
+    assert "| 4p2e5o | zoo3+drop | B | A: -8.7" in md
