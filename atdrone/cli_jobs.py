@@ -27,6 +27,14 @@ def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--tracking-uri", default=None, help="MLflow tracking URI (default MLFLOW_TRACKING_URI or ./mlflow.db)"
     )
+    p.add_argument(
+        "--first",
+        nargs="+",
+        default=(),
+        metavar="GLOB",
+        help="run the cells whose names match these patterns first, in the order given (e.g. 'sp-4p2e1o-*' "
+        "'floor-*'); the others follow in grid order. Results do not depend on the order",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress output")
     return p
 
@@ -38,7 +46,13 @@ def run_benchmark(args: argparse.Namespace) -> int:
     cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)
     interrupt_on_signals()  # SIGTERM as Ctrl-C (installed again once Ray has started)
     try:
-        summary = run(cfg, address=args.address, tracking_uri=args.tracking_uri, progress=not args.no_progress)
+        summary = run(
+            cfg,
+            address=args.address,
+            tracking_uri=args.tracking_uri,
+            progress=not args.no_progress,
+            first=args.first,
+        )
     except BaseException as exc:
         if not interrupted(exc) or args.debug:
             raise
@@ -51,6 +65,7 @@ def run_benchmark(args: argparse.Namespace) -> int:
             ("--address", args.address),
         )
         again = f"atdrone benchmark {args.config}" + "".join(f" {f} {v}" for f, v in flags if v is not None)
+        again += "".join(f" --first '{g}'" if i == 0 else f" '{g}'" for i, g in enumerate(args.first))
         print(
             f"atdrone benchmark: interrupted; kept {len(finished(cfg))} finished cell(s) of {len(cells(cfg))} (an "
             f"unfinished one resumes from its last generation) in {cfg.folder}; resume with: {again}",

@@ -334,6 +334,9 @@ def test_extra_seeds_join_the_pairs_but_not_the_aggregates(tmp_path: Path) -> No
         load_benchmark({**doc, "extra_seeds": []}).digest()
         == load_benchmark({**DOC, "zoos": ["zoo1", "zoo3"]}).digest()
     )
+    # the learner's threads are a resource (how fast, not what): a grid may resume with another count
+    assert cfg.digest() == load_benchmark({**doc, "experiment": {"learner_threads": 1}}).digest()
+    assert cfg.digest() != load_benchmark({**doc, "experiment": {"num_workers": 1}}).digest()
     files = write_report(cfg, _records(cfg, tmp_path))
     claims = pd.read_csv(files["orderings.csv"])
     hola = claims[claims.better == "hola"].iloc[0]
@@ -424,3 +427,65 @@ def test_a_benchmarks_default_results_are_its_own_and_its_weights_are_found_by_n
     assert cfg.results == tmp_path / "runs" / "benchmarks" / "made_up" / "results" / "made_up"
     (cfg.results / "weights").mkdir(parents=True)
     assert cfg.results in weights_roots()
+
+
+def test_first_runs_the_matching_cells_first_in_pattern_order_and_refuses_a_pattern_matching_nothing() -> None:
+    from atdrone.benchmark.job import run_order
+
+    grid = cells(load_benchmark(DOC))
+    order = [c.name for c in run_order(grid, ["floor-*", "sp-4p2e5o-*"])]
+    floors = [c.name for c in grid if c.kind == "floor"]
+    sp = ["sp-4p2e5o-s0", "sp-4p2e5o-s1", "sp-4p2e5o-s2"]
+    assert order[: len(floors)] == floors and order[len(floors) : len(floors) + 3] == sp
+    assert order[len(floors) + 3 :] == [c.name for c in grid if c.name not in floors + sp]  # the rest in grid order
+    assert [c.name for c in run_order(grid)] == [c.name for c in grid]
+    with pytest.raises(ConfigError, match=r"--first.*'sp-4p2e1-\*' matches no cell .*sp-4p2e1o-s0.*floor-zoo1"):
+        run_order(grid, ["sp-4p2e1-*"])
+
+
+def test_the_time_left_counts_each_pending_cell_at_its_methods_mean_wall_time() -> None:
+    from atdrone.benchmark.cells import Cell
+    from atdrone.benchmark.job import _progress_line
+
+    pending = [
+        Cell("method", "sp", "4p2e1o", 0),
+        Cell("method", "hola", "4p2e1o", 0),
+        Cell("br", "br", "4p2e1o", 0, "zoo1"),
+    ]
+    # sp: the median (a cell that sat out a pause, 3,000 s, is no guide); hola, br: none finished, the mean of the
+    # methods' medians, 181 s
+    walls = {"floor": [1.0, 3.0, 2.0], "sp": [300.0, 420.0, 360.0, 3000.0, 330.0]}
+    # one at a time: 360 + 181 + 181 s = 12.0 min; two at once: half of it
+    assert _progress_line(4, 1, 2, walls, pending) == "cells: 4 done, 1 running, 2 left; about 12.0 min left"
+    assert _progress_line(4, 2, 1, walls, pending).endswith("; about 6.0 min left")
+    assert _progress_line(0, 1, 2, {}, pending) == "cells: 0 done, 1 running, 2 left"  # nothing to go by yet
+    # a resumed job starts from the cells finished before it: a record's every attempt, one without timing left out
+    from atdrone.benchmark.job import finished_walls
+
+    records = [
+        {"cell": {"method": "sp"}, "timing": {"train_wall_s": 290.0, "eval_wall_s": 10.0, "wall_s": 60.0}},
+        {"cell": {"method": "sp"}, "timing": {"wall_s": 420.0}},
+        {"cell": {"method": "floor"}, "timing": {}},
+    ]
+    assert finished_walls(records) == {"sp": [300.0, 420.0]}
+
+
+def test_a_cells_wall_time_sums_its_generations_over_every_attempt_plus_its_evaluation(tmp_path, monkeypatch):
+    """Generation 0 ran 100 s, generation 1 was cut after 40 s (a kill) and then ran 60 s: 160 s of training, the
+    gap between the attempts and the unfinished attempt not counted; the cell's wall adds its evaluation."""
+    from atdrone import registry as registry_module
+    from atdrone.benchmark.cells import cell_wall, training_wall
+    from atdrone.registry import Registry
+
+    clock = iter(["2026-11-29T00:00:00+00:00", "2026-11-29T00:01:40+00:00", "2026-11-29T00:01:40+00:00",
+                  "2026-11-29T05:00:00+00:00", "2026-11-29T05:01:00+00:00"])  # fmt: skip
+    monkeypatch.setattr(registry_module, "_now", lambda: next(clock))
+    with Registry(tmp_path / "registry.db") as reg:
+        reg.start_generation("r", 0)
+        reg.finish_generation("r", 0)
+        reg.start_generation("r", 1)  # killed 40 s in: never finished; the resume starts it again hours later
+        reg.start_generation("r", 1)
+        reg.finish_generation("r", 1)
+    assert training_wall(tmp_path, "./registry.db") == 160.0
+    assert cell_wall({"wall_s": 30.0, "train_wall_s": 160.0, "eval_wall_s": 25.0}) == 185.0
+    assert cell_wall({"wall_s": 30.0, "cpu_s": 60.0}) == 30.0  # a record made before: its last attempt

@@ -56,6 +56,7 @@ from atdrone.config import (
 from atdrone.policies.zoo import PolicyError, load_zoo
 
 PLACEMENT = ("out_dir", "results_dir", "max_parallel")  # where and how fast, not what: a resume may change them
+RESOURCES = ("learner_threads", "learner_gpus")  # experiment keys outside the digest (how fast, not what)
 LABELS = ("smoke_test",)  # what a report says about the grid, not what runs: outside the digest too
 # HOLA's generation 0 trains Pi_0 alone; every later generation builds and plays the hypergraph G'_t. A run planned
 # for fewer hypergraph generations than this measures little of the method (at one planned generation, none).
@@ -117,6 +118,8 @@ class BenchmarkConfig:
         """What makes two configs the same benchmark: every key but where its files go, and the partners:
         the zoo manifest's version of each task (a drone retrained is another benchmark, never mixed in)."""
         doc = {k: v for k, v in self.to_dict().items() if k not in PLACEMENT + LABELS}
+        # the learner's resources, which a resumed run may change too: where its update runs, not what it computes
+        doc["experiment"] = {k: v for k, v in doc["experiment"].items() if k not in RESOURCES}
         for key in ("extra_seeds", "protocols"):  # a config without them keeps the digest it had before them
             if not doc[key]:
                 del doc[key]

@@ -20,14 +20,17 @@ budgets) is refused.
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import logging
+import math
+import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from atdrone.benchmark.cells import Cell, cells, run_cell
+from atdrone.benchmark.cells import Cell, cell_wall, cells, run_cell
 from atdrone.benchmark.config import BenchmarkConfig
 from atdrone.fileio import atomic_write_bytes
 from atdrone.rundir import RunError, read_json
@@ -91,8 +94,11 @@ def run_benchmark(
     tracking_uri: str | None = None,
     progress: bool = True,
     num_cpus: int | None = None,
+    first: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Run the cells that are not done yet, then write the report; returns a summary (records, files)."""
+    """Run the cells that are not done yet, then write the report; returns a summary (records, files).
+
+    ``first``: cell-name patterns (fnmatch) whose cells run before the others, in the order of the patterns."""
     from atdrone.service.driver import init_ray
     from atdrone.tracking import Tracker, absolute_uri
     from atdrone.tracking import tracking_uri as resolve_uri
@@ -102,6 +108,7 @@ def run_benchmark(
     uri = absolute_uri(resolve_uri(tracking_uri))  # the cells' processes may run elsewhere
     state_path = cfg.folder / STATE_FILE
     state = read_json(state_path, "benchmark state") if state_path.is_file() else {}
+    run_order(cells(cfg), first)  # a pattern matching no cell refused before Ray starts
     init_ray(address, num_cpus)
     tracker = Tracker(uri)
     tags = {"atdrone.benchmark": cfg.name, "atdrone.benchmark_digest": cfg.digest()}
@@ -109,7 +116,7 @@ def run_benchmark(
         if state.get("mlflow_run_id") != run_id:
             _write_json(state_path, {"mlflow_run_id": run_id})
         tracker.log_params({"benchmark": cfg.to_dict()})
-        records = _run_cells(cfg, uri, progress, run_id)
+        records = _run_cells(cfg, uri, progress, run_id, first)
         from atdrone.benchmark.bounds import bounds_from_records, write_bounds
         from atdrone.benchmark.report import table2, write_report
         from atdrone.benchmark.weights import keep_weights
@@ -146,19 +153,48 @@ def _log_results(tracker: Any, cfg: BenchmarkConfig, records: Sequence[dict[str,
     tracker.log_metrics(metrics, step=0, once=True)
 
 
-def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool, parent_run: str) -> list[dict[str, Any]]:
-    """Run every cell not yet done on the cluster, as many at once as its CPUs hold; every record, in grid
-    order. A failed cell does not stop the others; the job then fails naming it (run again to retry)."""
+def run_order(grid: Sequence[Cell], first: Sequence[str] = ()) -> list[Cell]:
+    """The cells in the order they are started: those matching ``first``'s patterns by pattern, then the rest,
+    each group in grid order. A pattern that matches no cell is refused (ConfigError): a typo would reorder
+    nothing."""
+    from atdrone.config import ConfigError
+
+    for pattern in first:
+        if not any(fnmatch.fnmatchcase(c.name, pattern) for c in grid):
+            raise ConfigError(
+                "--first", f"{pattern!r} matches no cell (cells are named like {', '.join(_examples(grid))})"
+            )
+
+    def rank(cell: Cell) -> int:
+        return next((i for i, pattern in enumerate(first) if fnmatch.fnmatchcase(cell.name, pattern)), len(first))
+
+    return sorted(grid, key=rank)  # stable: grid order within a rank
+
+
+def _examples(grid: Sequence[Cell]) -> list[str]:
+    """One cell name of each kind."""
+    seen: dict[str, str] = {}
+    for c in grid:
+        seen.setdefault(c.kind, c.name)
+    return list(seen.values())
+
+
+def _run_cells(
+    cfg: BenchmarkConfig, tracking_uri: str, progress: bool, parent_run: str, first: Sequence[str] = ()
+) -> list[dict[str, Any]]:
+    """Run every cell not yet done on the cluster, as many at once as its CPUs hold (``first``'s cells first);
+    every record, in grid order. A failed cell does not stop the others; the job then fails naming it (run again
+    to retry)."""
     import ray
 
     grid = cells(cfg)
     done = finished(cfg)
-    todo = [c for c in grid if c.name not in done]
+    todo = [c for c in run_order(grid, first) if c.name not in done]
     total_cpus = int(ray.cluster_resources().get("CPU", 1))
     task = ray.remote(run_cell)
     running: dict[Any, tuple[Cell, int, float]] = {}
     failed: list[str] = []
-    walls: list[float] = []
+    walls = finished_walls(done.values())  # a resumed job's estimate starts from what it finished before
     if progress:
         print(f"[{cfg.name}] {len(grid)} cells: {len(done)} done, {len(todo)} to run", flush=True)
     shown: tuple[int, int, int] | None = None  # the counts last printed
@@ -191,21 +227,40 @@ def _run_cells(cfg: BenchmarkConfig, tracking_uri: str, progress: bool, parent_r
                 continue
             _write_json(cell_path(cfg, cell), record)
             done[cell.name] = record
-            walls.append(time.monotonic() - started)
+            wall = cell_wall(record.get("timing", {}))  # a resumed cell's every attempt, not this one's alone
+            walls.setdefault(cell.method, []).append(wall if math.isfinite(wall) else time.monotonic() - started)
         counts = (len(done), len(running), len(todo))
         if progress and counts != shown:  # a line only when a cell started or ended
-            print(f"[{cfg.name}] {_progress_line(*counts, walls, total_cpus)}", flush=True)
+            pending = [c for c, _, _ in running.values()] + todo
+            print(f"[{cfg.name}] {_progress_line(*counts, walls, pending)}", flush=True)
             shown = counts
     if failed:
         raise RunError(f"{len(failed)} cell(s) failed: {'; '.join(failed)}; run the benchmark again to retry them")
     return [done[c.name] for c in grid]
 
 
-def _progress_line(done: int, running: int, left: int, walls: Sequence[float], cpus: int) -> str:
-    """``cells: 3 done, 1 running, 6 left; about 4 min left`` (from this invocation's cell times)."""
+def finished_walls(records: Iterable[Mapping[str, Any]]) -> dict[str, list[float]]:
+    """Method label -> the wall seconds of its finished cells (each over all its attempts; records without timing
+    left out)."""
+    walls: dict[str, list[float]] = {}
+    for record in records:
+        wall = cell_wall(record.get("timing", {}))
+        if math.isfinite(wall):
+            walls.setdefault(record["cell"]["method"], []).append(wall)
+    return walls
+
+
+def _progress_line(
+    done: int, running: int, left: int, walls: Mapping[str, Sequence[float]], pending: Sequence[Cell]
+) -> str:
+    """``cells: 3 done, 1 running, 6 left; about 4 min left``: each pending cell at the median wall time of its
+    method's finished cells (:func:`finished_walls`, then each finished here; a method none finished yet: the mean of
+    the methods' medians), as many at once as run now. The median: a cell that ran across a pause or beside other
+    work would pull a mean far up."""
     line = f"cells: {done} done, {running} running, {left} left"
-    if walls and (running or left):
-        per_cell = sum(walls) / len(walls)
-        at_once = max(1, running)
-        line += f"; about {per_cell * (left + running) / at_once / 60:.1f} min left"
+    typical = {m: statistics.median(ws) for m, ws in walls.items() if ws}  # a cell that sat out a pause is no guide
+    if typical and pending:
+        overall = sum(typical.values()) / len(typical)
+        total = sum(typical.get(c.method, overall) for c in pending)
+        line += f"; about {total / max(1, running) / 60:.1f} min left"
     return line

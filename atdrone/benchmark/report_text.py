@@ -103,8 +103,9 @@ def _header(cfg: BenchmarkConfig, t: Tables) -> list[str]:
         "job's own wall time is shorter).",
         "",
         "CPU-s: the rollout workers' reserved CPU-seconds (wall time x workers) plus the CPU time of the cell's "
-        "driver and evaluation; CPU-s and wall-s are of the last attempt of each cell (timing.csv); every other "
-        "number is reproducible.",
+        "driver and evaluation, of the last attempt of each cell. Wall-s: the training's generations over every "
+        "attempt plus the evaluation, where the record keeps them (else the last attempt's; timing.csv has "
+        "each). Every other number is reproducible.",
     ]
     return lines
 

@@ -59,7 +59,16 @@ def mean_std(values: pd.Series | np.ndarray) -> tuple[float, float]:
     return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else float("nan")
 
 
-def t_interval(diffs: np.ndarray) -> dict[str, Any]:
+def over_seeds(values: Sequence[float] | np.ndarray) -> str:
+    """``mean ± std`` (ddof 1) of the finite ``values`` to one decimal; ``x (1 seed)`` for one; ``-`` for none."""
+    mean, std = mean_std(np.asarray(values, dtype=np.float64))
+    n = int(np.isfinite(np.asarray(values, dtype=np.float64)).sum())
+    if n == 0:
+        return "-"
+    return f"{mean:.1f} (1 seed)" if n == 1 else f"{mean:.1f} ± {std:.1f}"
+
+
+def t_interval(diffs: Sequence[float] | np.ndarray) -> dict[str, Any]:
     """Mean of the finite ``diffs``, its standard error and the t-based 95 % interval with n - 1 degrees of
     freedom, n the values used (NaN where fewer than two)."""
     d = np.asarray(diffs, dtype=np.float64)
