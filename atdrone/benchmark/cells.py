@@ -289,6 +289,10 @@ def _node_id() -> str:
         return ""
 
 
+STALL_FACTOR = 2.0
+"""A cell whose wall time is over this many times its method's median cell wall time counts as stalled."""
+
+
 def cell_wall(timing: dict[str, Any]) -> float:
     """A cell's wall seconds: its training's generations over every attempt plus its evaluation where the record
     has them, else the last attempt's wall time (a record made before they were kept)."""

@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 
 from atdrone.benchmark.bounds import make_bound
-from atdrone.benchmark.cells import cell_wall
+from atdrone.benchmark.cells import STALL_FACTOR, cell_wall
 from atdrone.benchmark.config import HOLA_ALGORITHMS, BenchmarkConfig, check_hola_generations
 from atdrone.benchmark.report_figures import FIGURES, family_figure, profile_figure, suc_figure
 from atdrone.benchmark.report_paper import CLAIMS, orderings, side_by_side
@@ -219,24 +219,44 @@ def hola_marks(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dict[
     return marks
 
 
+def stalled(walls: pd.Series, methods: pd.Series) -> pd.Series:
+    """Which cells stalled: wall time over :data:`STALL_FACTOR` times the median of their method's cells (every
+    task: a method's cells cost about the same on each), as when the machine running them was paused or busy
+    with other work. A method needs three cells for a median that one stall cannot move."""
+    median = walls.groupby(methods).transform("median")
+    counts = walls.groupby(methods).transform("size")
+    return (walls > STALL_FACTOR * median) & (counts >= 3)
+
+
 def budget(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """The budget per method (or bound) and task, mean over its runs (CPU- and wall seconds too); every cell's
-    timing."""
+    """The budget per method (or bound) and task, mean over its runs (CPU-seconds too; wall seconds as mean and
+    median, with the stalled cells counted); every cell's timing, with its wall time and whether it stalled."""
     rows, timing = [], []
     for rec in records:
         cell, spent = rec["cell"], rec.get("timing", {})
         row = {"method": cell["method"], "task": cell["task"], **{k: rec["budget"].get(k, 0) for k in BUDGET_KEYS}}
         rows.append({**row, "cpu_s": spent.get("cpu_s", float("nan")), "wall_s": cell_wall(spent)})
-        timing.append({"cell": rec["name"], **spent})
+        timing.append({"cell": rec["name"], **spent, "cell_wall_s": cell_wall(spent)})
+    frame = pd.DataFrame(rows)
+    frame["stalled"] = stalled(frame["wall_s"], frame["method"])
+    # the wall time the cell would have taken without its stall: its method's median
+    median = frame.groupby("method")["wall_s"].transform("median")
+    frame["steady_wall_s"] = frame["wall_s"].where(~frame["stalled"], median)
     rank = {m: i for i, m in enumerate(order(cfg))}
     table = (
-        pd.DataFrame(rows)
-        .groupby(["method", "task"], sort=False)
-        .agg(runs=("env_steps", "size"), **{k: (k, "mean") for k in (*BUDGET_KEYS, "cpu_s", "wall_s")})
+        frame.groupby(["method", "task"], sort=False)
+        .agg(
+            runs=("env_steps", "size"),
+            **{k: (k, "mean") for k in (*BUDGET_KEYS, "cpu_s", "wall_s")},
+            wall_median_s=("wall_s", "median"),
+            stalled=("stalled", "sum"),
+            steady_wall_s=("steady_wall_s", "mean"),
+        )
         .reset_index()
     )
     table = table.assign(_order=table["method"].map(rank)).sort_values(["_order", "task"], kind="stable")
-    times = pd.DataFrame(timing).sort_values("cell", kind="stable").reset_index(drop=True)
+    times = pd.DataFrame(timing).assign(stalled=frame["stalled"].to_numpy())
+    times = times.sort_values("cell", kind="stable").reset_index(drop=True)
     return table.drop(columns="_order").reset_index(drop=True), times
 
 

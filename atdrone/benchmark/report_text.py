@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from atdrone.benchmark.cells import STALL_FACTOR
 from atdrone.benchmark.config import MIN_HOLA_GENERATIONS, BenchmarkConfig
 from atdrone.benchmark.report_paper import diff_text, orderings_text, side_by_side_text
 from atdrone.benchmark.stats import md_table, mean_std
@@ -86,26 +87,31 @@ def _header(cfg: BenchmarkConfig, t: Tables) -> list[str]:
         "for every method of a seed. " + _ppo_line(cfg) + " The budgets spent, per method and task (mean over runs):",
         "",
         "| method | task | runs | env steps | learner samples | eval env steps (training) | "
-        "eval env steps (benchmark) | CPU-s | wall-s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "eval env steps (benchmark) | CPU-s | wall-s | wall-s median | stalled |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for _, b in t.spent.iterrows():
         counts = " | ".join(f"{b[k]:,.0f}" for k in BUDGET_KEYS)
         lines.append(
-            f"| {b['method']} | {b['task']} | {b['runs']} | {counts} | {b['cpu_s']:,.0f} | {b['wall_s']:,.0f} |"
+            f"| {b['method']} | {b['task']} | {b['runs']} | {counts} | {b['cpu_s']:,.0f} | {b['wall_s']:,.0f} | "
+            f"{b['wall_median_s']:,.0f} | {b['stalled']} |"
         )
-    total = {k: float((t.spent[k] * t.spent["runs"]).sum()) for k in (*BUDGET_KEYS, "cpu_s", "wall_s")}
+    keys = (*BUDGET_KEYS, "cpu_s", "wall_s", "steady_wall_s")
+    total = {k: float((t.spent[k] * t.spent["runs"]).sum()) for k in keys}
     lines += [
         "",
         f"In all: {int(t.spent['runs'].sum()):,} cells, {total['env_steps']:,.0f} training env steps, "
         f"{total['eval_env_steps'] + total['benchmark_eval_env_steps']:,.0f} evaluation env steps, "
-        f"{total['cpu_s']:,.0f} CPU-s, {total['wall_s']:,.0f} s of cell wall time (cells run side by side: the "
-        "job's own wall time is shorter).",
+        f"{total['cpu_s']:,.0f} CPU-s, {total['wall_s']:,.0f} s of cell wall time as measured; "
+        f"{total['steady_wall_s']:,.0f} s with each of the {int(t.spent['stalled'].sum())} stalled cells counted at "
+        "its method's median (cells run side by side: the job's own wall time is shorter).",
         "",
         "CPU-s: the rollout workers' reserved CPU-seconds (wall time x workers) plus the CPU time of the cell's "
         "driver and evaluation, of the last attempt of each cell. Wall-s: the training's generations over every "
         "attempt plus the evaluation, where the record keeps them (else the last attempt's; timing.csv has "
-        "each). Every other number is reproducible.",
+        f"each). A cell is stalled when its wall time is over {STALL_FACTOR:g} times its method's median over "
+        "all tasks: its processes were stopped or starved for part of it (a paused or busy machine), so its wall "
+        "time and reserved CPU-seconds measure the machine, not the method. Every other number is reproducible.",
     ]
     return lines
 
