@@ -627,8 +627,9 @@ def test_runs_of_one_name_never_mix_one_driver_holds_a_run_and_a_resume_checks_w
     """With one registry folder for every run (the cluster's recipe): while run A's driver runs, a second driver
     on A is refused in one line naming the holder; a new run of the same name in another out dir gets a registry
     of its own and leaves A's byte-identical. Then, before Ray starts and in one line (exit 2), leaving A as it
-    was: a member checkpoint swapped for another valid one, a registry file of the other run, a file that is no
-    registry and a state file whose generation count is -3 are refused."""
+    was (its config.json too, though each resume asks for another generation count): a member checkpoint swapped
+    for another valid one, a registry file of the other run, a file that is no registry and a state file whose
+    generation count is -3 are refused."""
     import os
     import signal
     import threading
@@ -682,7 +683,7 @@ def test_runs_of_one_name_never_mix_one_driver_holds_a_run_and_a_resume_checks_w
         raise AssertionError("Ray was started before the run was checked")
 
     monkeypatch.setattr(driver, "init_ray", ray_started)
-    state = (run_dir / STATE_FILE).read_bytes()
+    state, config_json = (run_dir / STATE_FILE).read_bytes(), (run_dir / "config.json").read_bytes()
     first_member, second_member = sorted((run_dir / "members").glob("*.pt"))
     kept = first_member.read_bytes()
     shutil.copyfile(second_member, first_member)  # a valid checkpoint, of another member
@@ -714,6 +715,7 @@ def test_runs_of_one_name_never_mix_one_driver_holds_a_run_and_a_resume_checks_w
     code, line = train("--resume", "--generations", "3")
     assert code == 2 and "-3 completed and" in line and "the run cannot be resumed" in line, line
     (run_dir / STATE_FILE).write_bytes(state)
+    assert (run_dir / "config.json").read_bytes() == config_json  # every refused --generations 3 wrote nothing
     assert {p: p.read_bytes() for p in a_registry.parent.iterdir() if p.suffix == ".db"} == {
         p: b for p, b in a_files.items() if p.suffix == ".db"
     }

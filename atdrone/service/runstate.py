@@ -159,8 +159,8 @@ def _open_locked(cfg: ExperimentConfig, run_dir: Path, resume: bool, locks: Exit
     run_id = hashlib.sha256(str(run_dir).encode()).hexdigest()[:16] if legacy else saved["run_id"]
     run = OpenRun(run_dir, run_id, _saved_registry(cfg, run_dir, saved, run_id), saved, legacy, locks)
     _lock_registry(run)
-    write_json(run_dir / "config.json", cfg.to_dict())
     check_registry(run, cfg.name)
+    write_json(run_dir / "config.json", cfg.to_dict())  # only once every check passed: a refusal writes nothing
     return run
 
 
