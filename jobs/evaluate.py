@@ -10,13 +10,15 @@ drawn from the zoo (``atdrone.teams.evaluation.evaluate_grid``); prints the SUC 
 REW table and writes ``DIR/<policy>_<task>_<zoo>.json`` (per cell: summary and per-seed
 metrics) and ``.csv`` (one row per episode) through ``atdrone.teams.reports``. It runs in the
 job's driver process; on a cluster give --out-dir an absolute path you can read afterwards.
-Bad input exits with status 2 and a one-line error.
+Bad input exits with status 2 and a one-line error; SIGTERM (``ray job stop``) and SIGINT end it
+with one line (the command that runs it again) and status 143 and 130.
 """
 
 from __future__ import annotations
 
 import argparse
 import re
+import shlex
 import sys
 from pathlib import Path
 
@@ -59,6 +61,24 @@ def _fail(message: object) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from atdrone.errors import interrupt_exit_code, interrupt_on_signals, interrupted
+
+    interrupt_on_signals()  # SIGTERM as Ctrl-C: one line, not a traceback (nor a silent kill)
+    try:
+        return _evaluate(args)
+    except BaseException as exc:
+        if not interrupted(exc):
+            raise
+        again = shlex.join(["python", PROG, *(argv if argv is not None else sys.argv[1:])])
+        print(
+            f"{PROG}: interrupted; the report is written once every cell has played; run it again with: {again}",
+            file=sys.stderr,
+        )
+        return interrupt_exit_code(exc)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    """Play every cell, print the table and write the report (the module docstring); the exit status."""
     from atdrone.config import TASK_NAMES, ConfigError, load_task
     from atdrone.policies.zoo import ZOO_NAMES, PolicyError, load_zoo
     from atdrone.resolve import resolve

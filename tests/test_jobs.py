@@ -72,6 +72,49 @@ def test_bad_task_exits_non_zero_with_one_line(tmp_path: Path) -> None:
     assert not any(tmp_path.iterdir())
 
 
+@pytest.fixture
+def keep_signal_handlers() -> Iterator[None]:
+    """The test process's SIGTERM and SIGINT handlers restored after a script's main installed its own."""
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    yield
+    for s, h in handlers.items():
+        signal.signal(s, h)
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["sigterm", "sigint"])
+def test_a_stop_signal_ends_the_evaluate_script_in_one_line_with_the_signals_status(
+    signum: signal.Signals,
+    code: int,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    load_script: Callable[[Path], Any],
+    keep_signal_handlers: None,
+) -> None:
+    """`ray job stop` (SIGTERM) or Ctrl-C while the cells play: no traceback, no report, one line with the command
+    that runs it again, and the shell's status for that signal."""
+    from atdrone.teams import evaluation
+
+    def stopped(*args: Any, **kwargs: Any) -> None:
+        os.kill(os.getpid(), signum)
+        time.sleep(30)  # the handler raises in this frame long before
+        raise AssertionError("the signal was not handled")
+
+    def not_handled(signum: int, frame: Any) -> None:
+        raise AssertionError(f"{signal.Signals(signum).name} reached the test's handler: the script installed none")
+
+    signal.signal(signum, not_handled)  # what the script must replace (the fixture restores the test's own)
+    monkeypatch.setattr(evaluation, "evaluate_grid", stopped)
+    args = ["--policy", "greedy", "--episodes", "5", "--out-dir", str(tmp_path / "eval")]
+    assert load_script(EVALUATE).main(args) == code
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == [
+        "jobs/evaluate.py: interrupted; the report is written once every cell has played; run it again with: "
+        f"python jobs/evaluate.py {' '.join(args)}"
+    ]
+    assert not (tmp_path / "eval").exists()
+
+
 @pytest.mark.parametrize(
     ("script", "args", "needle"),
     [
@@ -89,6 +132,7 @@ def test_bad_input_is_refused_in_one_line(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     load_script: Callable[[Path], Any],
+    keep_signal_handlers: None,
 ) -> None:
     main = load_script(script).main
     assert main([*args, "--out" if script == EVALUATE else "--out-dir", str(tmp_path)]) == 2
