@@ -85,5 +85,17 @@ def format_summary(summary: dict[str, Any]) -> str:
     return text
 
 
+def program(args: argparse.Namespace) -> str:
+    """The name a subcommand's lines begin with: ``atdrone COMMAND``, or the job script that ran it
+    (``jobs/deploy.py``)."""
+    return getattr(args, "prog", None) or f"atdrone {args.command}"
+
+
+def invocation(args: argparse.Namespace) -> str:
+    """The command that runs the subcommand again: ``atdrone COMMAND`` or ``python jobs/SCRIPT.py``."""
+    name = program(args)
+    return f"python {name}" if name.endswith(".py") else name
+
+
 def say_error(args: argparse.Namespace, message: object) -> None:
-    print(f"atdrone {args.command}: error: {message}", file=sys.stderr)
+    print(f"{program(args)}: error: {message}", file=sys.stderr)

@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from atdrone.cli_args import EXIT_USAGE, positive_int, say_error
-from atdrone.errors import interrupt_exit_code, interrupt_on_signals, interrupted
+from atdrone.cli_args import EXIT_USAGE, positive_int, program, say_error
+from atdrone.errors import interrupt_on_signals
 
 
 def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
@@ -40,7 +40,8 @@ def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run_benchmark(args: argparse.Namespace) -> int:
-    from atdrone.benchmark.cells import cells, load_benchmark
+    from atdrone.benchmark.cells import load_benchmark
+    from atdrone.benchmark.job import ended
     from atdrone.benchmark.job import run_benchmark as run
 
     cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)
@@ -53,29 +54,29 @@ def run_benchmark(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             first=args.first,
         )
-    except BaseException as exc:
-        if not interrupted(exc) or args.debug:
+    except BaseException as exc:  # one line by kind (an interrupt, a fault, bad input), never a Ray traceback
+        end = None if args.debug else ended(cfg, exc, _benchmark_again(args))
+        if end is None:  # a bug: main names it an internal error
             raise
-        from atdrone.benchmark.job import finished
-
-        flags = (
-            ("--out-dir", args.out_dir),
-            ("--results-dir", args.results_dir),
-            ("--tracking-uri", args.tracking_uri),
-            ("--address", args.address),
-        )
-        again = f"atdrone benchmark {args.config}" + "".join(f" {f} {v}" for f, v in flags if v is not None)
-        again += "".join(f" --first '{g}'" if i == 0 else f" '{g}'" for i, g in enumerate(args.first))
-        print(
-            f"atdrone benchmark: interrupted; kept {len(finished(cfg))} finished cell(s) of {len(cells(cfg))} (an "
-            f"unfinished one resumes from its last generation) in {cfg.folder}; resume with: {again}",
-            file=sys.stderr,
-        )
-        return interrupt_exit_code(exc)
+        code, line = end
+        print(f"{program(args)}: {line}", file=sys.stderr)
+        return code
     print(f"{cfg.name}: {len(summary['records'])} cells; report {cfg.results / 'report.md'}")
     for m in summary["weights"]:
         print(f"  weights:{m['method']}/{m['task']} (seed {m['seed']}, chosen on {m['selected_on']['zoo'] or '-'})")
     return 0
+
+
+def _benchmark_again(args: argparse.Namespace) -> str:
+    """The command that resumes the same benchmark."""
+    flags = (
+        ("--out-dir", args.out_dir),
+        ("--results-dir", args.results_dir),
+        ("--tracking-uri", args.tracking_uri),
+        ("--address", args.address),
+    )
+    again = f"atdrone benchmark {args.config}" + "".join(f" {f} {v}" for f, v in flags if v is not None)
+    return again + "".join(f" --first '{g}'" if i == 0 else f" '{g}'" for i, g in enumerate(args.first))
 
 
 # ---------------------------------------------------------------- deploy

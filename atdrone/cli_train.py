@@ -184,12 +184,11 @@ def _train_service(args: argparse.Namespace) -> int:
 def _service_failed(args: argparse.Namespace, exc: Exception) -> int:
     """A population run that failed, in one line by kind (bad input: exit 2; a fault: what was kept, the resume
     command, exit 1; a bug: an internal error, exit 1), never a Ray traceback."""
-    from atdrone.service.faults import EXIT_FAULT, explain, one_line
+    from atdrone.service.faults import EXIT_FAULT, bug_line, explain
 
     fault = explain(exc)
     if fault is None:  # a bug: its own error, not Ray's wrapper (main names it an internal error)
-        root = getattr(exc, "cause", None)
-        raise RuntimeError(f"{type(root or exc).__name__}: {one_line(root or exc)}") from exc
+        raise RuntimeError(bug_line(exc)) from exc
     if fault.code != EXIT_FAULT:
         say_error(args, fault.line)
         return fault.code

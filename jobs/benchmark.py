@@ -8,15 +8,17 @@ Inside a Ray job RAY_ADDRESS is set, so the cells run on the cluster's nodes; ou
 job it starts a local Ray (or joins --address). The cells' runs and records live in
 ``<out_dir>/<name>/``: on a cluster that must be storage every node sees (--out-dir or
 ATDRONE_OUT_DIR). Submitting the same config again after an interruption continues it:
-finished cells are skipped. Bad input exits with status 2 and a one-line error; SIGTERM
-(``ray job stop``) and SIGINT stop it cleanly, saying what was kept and how to resume, with
-status 143 and 130.
+finished cells are skipped. Bad input exits with status 2 and a one-line error; a fault it
+cannot survive (the disk full, a store that cannot be written, cells that failed) with status 1,
+and SIGTERM (``ray job stop``) and SIGINT stop it cleanly with 143 and 130, each in one line
+saying what was kept and how to resume.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -41,8 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from atdrone.benchmark.cells import load_benchmark
-    from atdrone.benchmark.job import run_benchmark
-    from atdrone.errors import UserError, interrupt_exit_code, interrupt_on_signals, interrupted
+    from atdrone.benchmark.job import ended, run_benchmark
+    from atdrone.errors import UserError, interrupt_on_signals
 
     try:
         cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)
@@ -54,22 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     interrupt_on_signals()  # SIGTERM as Ctrl-C (installed again once Ray has started)
     try:
         summary = run_benchmark(cfg, address=args.address, tracking_uri=args.tracking_uri)
-    except UserError as exc:
-        print(f"{PROG}: error: {exc}".splitlines()[0], file=sys.stderr)
-        return EXIT_USAGE
-    except BaseException as exc:
-        if not interrupted(exc):
+    except BaseException as exc:  # one line by kind (an interrupt, a fault, bad input), never a Ray traceback
+        end = ended(cfg, exc, shlex.join(["python", PROG, *(argv if argv is not None else sys.argv[1:])]))
+        if end is None:
             raise
-        from atdrone.benchmark.cells import cells
-        from atdrone.benchmark.job import finished
-
-        again = " ".join(["python", PROG, *(argv if argv is not None else sys.argv[1:])])
-        print(
-            f"{PROG}: interrupted; kept {len(finished(cfg))} finished cell(s) of {len(cells(cfg))} in {cfg.folder}; "
-            f"resume with: {again}",
-            file=sys.stderr,
-        )
-        return interrupt_exit_code(exc)
+        code, line = end
+        print(f"{PROG}: {line}", file=sys.stderr)
+        return code
     print(f"{PROG}: done: {len(summary['records'])} cells, report {cfg.results / 'report.md'}")
     return 0
 

@@ -193,7 +193,7 @@ def _run_cells(
     total_cpus = int(ray.cluster_resources().get("CPU", 1))
     task = ray.remote(run_cell)
     running: dict[Any, tuple[Cell, int, float]] = {}
-    failed: list[str] = []
+    failed: list[tuple[str, Exception]] = []
     walls = finished_walls(done.values())  # a resumed job's estimate starts from what it finished before
     if progress:
         print(f"[{cfg.name}] {len(grid)} cells: {len(done)} done, {len(todo)} to run", flush=True)
@@ -222,8 +222,8 @@ def _run_cells(
             try:
                 record = ray.get(ref)
             except Exception as exc:  # a cell's error, or its node lost: the others go on
-                failed.append(f"{cell.name} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})")
-                log.error("cell %s failed: %s", cell.name, exc)
+                failed.append((cell.name, exc))
+                log.debug("cell %s failed", cell.name, exc_info=exc)  # the traceback, for a bug
                 continue
             _write_json(cell_path(cfg, cell), record)
             done[cell.name] = record
@@ -235,8 +235,45 @@ def _run_cells(
             print(f"[{cfg.name}] {_progress_line(*counts, walls, pending)}", flush=True)
             shown = counts
     if failed:
-        raise RunError(f"{len(failed)} cell(s) failed: {'; '.join(failed)}; run the benchmark again to retry them")
+        raise cells_failed(failed)
     return [done[c.name] for c in grid]
+
+
+def cells_failed(failed: Sequence[tuple[str, Exception]]) -> Exception:
+    """The error a benchmark whose cells failed ends with, naming each cell and its error in one line (the error
+    behind Ray's wrapper, without terminal colours): bad input (a RunError) when every cell refused its input, else
+    a fault (:class:`~atdrone.service.faults.ServiceFault`: the benchmark resumes, retrying them)."""
+    from atdrone.service.faults import EXIT_BAD_INPUT, ServiceFault, bug_line, explain
+
+    faults = [(name, explain(exc), exc) for name, exc in failed]
+    lines = [f"{name} ({fault.line if fault else 'internal error: ' + bug_line(exc)})" for name, fault, exc in faults]
+    message = f"{len(failed)} cell(s) failed: {'; '.join(lines)}"
+    if all(fault is not None and fault.code == EXIT_BAD_INPUT for _, fault, _ in faults):
+        return RunError(message)
+    return ServiceFault(message)
+
+
+def ended(cfg: BenchmarkConfig, exc: BaseException, again: str) -> tuple[int, str] | None:
+    """How a benchmark job that raised ``exc`` ends: its exit status and last line (after the program's name). An
+    interrupt (130 SIGINT, 143 SIGTERM) or a fault (1: the disk full, a store that cannot be written, failed cells)
+    says what was kept and ``again``, the command that resumes; bad input (2) what is wrong. None for a bug."""
+    from atdrone.errors import interrupt_exit_code, interrupted
+    from atdrone.service.faults import EXIT_FAULT, explain
+
+    if interrupted(exc):
+        code, line = interrupt_exit_code(exc), "interrupted"
+    else:
+        fault = explain(exc) if isinstance(exc, Exception) else None
+        if fault is None:
+            return None
+        code, line = fault.code, f"error: {fault.line}"
+        if code != EXIT_FAULT:
+            return code, line
+    kept = (
+        f"kept {len(finished(cfg))} finished cell(s) of {len(cells(cfg))} (an unfinished one resumes from its last "
+        f"generation) in {cfg.folder}"
+    )
+    return code, f"{line}; {kept}; resume with: {again}"
 
 
 def finished_walls(records: Iterable[Mapping[str, Any]]) -> dict[str, list[float]]:

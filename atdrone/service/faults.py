@@ -7,7 +7,8 @@ and names its kind:
 - bad input (exit 2): any :class:`~atdrone.errors.UserError` (a config, a run directory
   or registry that cannot be resumed, a damaged checkpoint);
 - a fault the run cannot survive (exit 1): the disk full, a store or folder that cannot
-  be written (read-only, permissions), a service process that died past its restarts.
+  be written (read-only, permissions), a service process that died past its restarts, a
+  :class:`ServiceFault` (already put in words: a benchmark's failed cells).
 
 Anything else is a bug: :func:`explain` answers None and the caller reports it as one.
 """
@@ -24,6 +25,10 @@ from atdrone.errors import UserError
 EXIT_BAD_INPUT = 2
 EXIT_FAULT = 1
 _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+class ServiceFault(RuntimeError):
+    """A fault the run cannot survive, put in words by the code that met it: exit 1 with its message."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +64,13 @@ def one_line(exc: BaseException) -> str:
     return " ".join(lines[:1]) or type(exc).__name__
 
 
+def bug_line(exc: BaseException) -> str:
+    """A bug's one line: the type and message of its own error, not of Ray's wrapper."""
+    root = getattr(exc, "cause", None)
+    root = root if isinstance(root, BaseException) else exc
+    return f"{type(root).__name__}: {one_line(root)}"
+
+
 def explain(exc: BaseException) -> Fault | None:
     """The kind of ``exc`` as a :class:`Fault`, or None for a bug (module docstring)."""
     from atdrone.service.actors import WorkerFailed
@@ -79,7 +91,7 @@ def explain(exc: BaseException) -> Fault | None:
             return Fault(EXIT_FAULT, f"a store is read-only: {text}")
         if isinstance(cause, sqlite3.DatabaseError):
             return Fault(EXIT_FAULT, f"a database failed: {text}")
-        if isinstance(cause, WorkerFailed):
+        if isinstance(cause, (WorkerFailed, ServiceFault)):
             return Fault(EXIT_FAULT, text)
     import ray
 
