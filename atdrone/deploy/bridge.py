@@ -58,6 +58,7 @@ from atdrone.fileio import user_cache
 MELLINGER, KALMAN = 2, 2
 BIT_CAN_FLY, BIT_LOCKED = 3, 6
 VARIANCE_SETTLED = 0.001  # m^2: the spread of the last 10 variances cflib's reset_estimators waits for
+ARM_TIMEOUT = 10.0  # s: how long armed drones, on the floor, get to report that they can fly
 
 Setpoint = tuple[np.ndarray, np.ndarray, np.ndarray]  # position, velocity, acceleration (3,) each
 
@@ -91,7 +92,7 @@ class Bridge(Protocol):
 
     def link_age(self) -> dict[str, float]: ...
 
-    def arm(self, names: Sequence[str], timeout: float = 3.0) -> None: ...
+    def arm(self, names: Sequence[str], timeout: float = ARM_TIMEOUT) -> None: ...
 
     def request_arming(self, names: Sequence[str]) -> None: ...
 
@@ -356,8 +357,12 @@ class CflibBridge:
             self._sent[kind] += n
 
     # ------------------------------------------------------------ commands (blocking, before the flight)
-    def arm(self, names: Sequence[str], timeout: float = 3.0) -> None:
-        """Request arming, then wait until each supervisor reports it can fly (or raise BridgeError)."""
+    def arm(self, names: Sequence[str], timeout: float = ARM_TIMEOUT) -> None:
+        """Request arming, then wait until each supervisor reports it can fly (or raise BridgeError).
+
+        Each read of the can-fly bit is a request and its answer (cflib waits 0.2 s for it, one drone at a
+        time); on a starved host answers come late, so the drones, still on the floor and disarmed until they
+        answer, get :data:`ARM_TIMEOUT` seconds in all."""
         for n in names:
             self._cf[n].supervisor.send_arming_request(True)
         self._count("arming", len(names))
@@ -366,14 +371,9 @@ class CflibBridge:
         while pending and time.monotonic() < end:
             pending = {n for n in pending if not self._cf[n].supervisor.can_fly}
         if pending:
-            raise BridgeError(f"{', '.join(sorted(pending))} cannot fly after arming (supervisor's can-fly bit)")
-
-    # ------------------------------------------------------------ commands (queued for the sender)
-    def _queue(self, name: str, kind: str, fn: Callable[[], None]) -> None:
-        with self._lock:
-            self._setpoints.pop(name, None)  # a setpoint posted before must not override the command
-            self._commands.append((kind, fn))
-        self._wake.set()
+            raise BridgeError(
+                f"{', '.join(sorted(pending))} cannot fly {timeout:g} s after arming (supervisor's can-fly bit)"
+            )
 
     def request_arming(self, names: Sequence[str]) -> None:
         """Queue an arming request (in order, before a takeoff queued after it; an armed drone ignores it)."""
