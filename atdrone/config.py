@@ -454,6 +454,8 @@ def read_json(path: str | Path) -> Any:
         raise ConfigError(None, f"{path} is nested too deeply to be a config document") from None
     except ConfigError as exc:
         raise ConfigError(exc.path, f"{exc.args[0].split(': ', 1)[1]} (in {path})") from None
+    except ValueError as exc:  # a number of more digits than Python converts (4300)
+        raise ConfigError(None, f"{path} is not a config: {str(exc).split(';')[0]}") from None
 
 
 def read_object(name_or_path: str | Path, kind: str, names: tuple[str, ...] = ()) -> dict[str, Any]:

@@ -432,7 +432,13 @@ def test_weights_names_and_model_version_tags_never_reach_outside_their_folders(
         resolve(f"models:/atdrone-tags/{version}", tracking_uri=uri)
 
 
-def test_a_number_of_5000_digits_in_a_config_is_refused_in_one_line(tmp_path, capsys):
+def test_a_number_of_5000_digits_in_a_config_is_refused_in_one_line(tmp_path, capsys, load_script):
     config = tmp_path / "big.json"
     config.write_text('{"name": "big", "algorithm": "sp", "task": "4p2e1o", "seed": ' + "9" * 5000 + "}")
     _one_line_error(capsys, ["train", str(config)], "is not a config: Exceeds the limit (4300 digits)")
+    train_job = load_script(Path(__file__).resolve().parent.parent / "jobs" / "train.py")  # every loader alike
+    assert train_job.main([str(config)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"jobs/train.py: error: {config} is not a config: Exceeds the limit (4300 digits) for integer string "
+        "conversion: value has 5000 digits"
+    ]
