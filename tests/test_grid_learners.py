@@ -34,11 +34,14 @@ def test_learners_are_saved_and_restored_by_their_records_digests_and_a_changed_
     (cells / "_config.json").write_text("{}")
     learner = _cell(cells, folder, "sp-4p2e1o-s0", "method", b"weights of sp")
     _cell(cells, folder, "br-zoo1-4p2e1o-s0", "br", b"weights of a best response")
-    assert grid.sync("save", cells, folder, kept) == ["sp-4p2e1o-s0"]  # best responses are not kept
+    gone = _cell(cells, folder, "sp-4p2e1o-s1", "method", b"weights lost")
+    gone.unlink()  # a learner lost before it was kept: named, the others copied
+    assert grid.sync("save", cells, folder, kept) == (["sp-4p2e1o-s0"], ["sp-4p2e1o-s1"])  # no best responses
     assert sorted(p.name for p in kept.iterdir()) == ["sp-4p2e1o-s0.pt"]
-    assert grid.sync("save", cells, folder, kept) == []  # already there: nothing copied
+    assert grid.sync("save", cells, folder, kept) == ([], ["sp-4p2e1o-s1"])  # already there: nothing copied
+    (cells / "sp-4p2e1o-s1.json").unlink()
     learner.unlink()  # a fresh checkout: the run folder is gone
-    assert grid.sync("restore", cells, folder, kept) == ["sp-4p2e1o-s0"]
+    assert grid.sync("restore", cells, folder, kept) == (["sp-4p2e1o-s0"], [])
     assert learner.read_bytes() == b"weights of sp"
     learner.unlink()
     (kept / "sp-4p2e1o-s0.pt").write_bytes(b"other weights")
