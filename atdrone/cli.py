@@ -56,8 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Parse ``argv`` (default: sys.argv[1:]), run the subcommand, return its exit code.
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """Parse ``argv`` (default: sys.argv[1:]), run the subcommand, return its exit code; ``prog``: the job script
+    that runs the subcommand (``jobs/deploy.py``), named in its lines instead of ``atdrone COMMAND``.
 
     An error the user caused (:class:`atdrone.errors.UserError`: a bad config, a damaged
     checkpoint, a refused run) or a file that cannot be read or written is one line on
@@ -66,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.prog = prog
     try:
         return COMMANDS[args.command].run(args)
     except KeyboardInterrupt as exc:

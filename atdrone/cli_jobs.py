@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import shlex
+import signal
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from atdrone.cli_args import EXIT_USAGE, positive_int, program, say_error
-from atdrone.errors import interrupt_on_signals
+from atdrone.cli_args import EXIT_USAGE, invocation, positive_int, program, say_error
+from atdrone.errors import interrupt_exit_code, interrupt_on_signals, interrupted
+
+if TYPE_CHECKING:
+    from atdrone.deploy.job import DeployResult
 
 
 def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
@@ -116,35 +121,73 @@ def run_deploy(args: argparse.Namespace) -> int:
     if args.log:
         say_error(args, f"unexpected argument {args.log!r}")
         return EXIT_USAGE
-    from atdrone.deploy.bridge import BridgeError
-    from atdrone.deploy.config import load_deploy
-    from atdrone.deploy.job import DeployError, format_gap
-    from atdrone.deploy.job import run_deploy as deploy
-    from atdrone.deploy.mocap import MocapError
-
-    cfg = load_deploy(args.config, backend=args.backend, episodes=args.episodes, out_dir=args.out_dir)
-    if args.compare and cfg.backend != "sim":
-        say_error(args, "--compare needs the sim backend")
-        return EXIT_USAGE
+    interrupt_on_signals()  # SIGTERM as Ctrl-C until the job takes both over (from then on every drone lands)
     try:
-        result = deploy(cfg, arm=args.arm, tracking_uri=args.tracking_uri, compare=args.compare)
-    except (DeployError, BridgeError, MocapError) as exc:  # a KeyError here is a bug (the deploy names its own)
-        say_error(args, exc.args[0] if exc.args else exc)
-        return 1
-    if not result.preflight.ok:
-        return 1
+        from atdrone.deploy.bridge import BridgeError
+        from atdrone.deploy.config import load_deploy
+        from atdrone.deploy.job import DeployError
+        from atdrone.deploy.job import run_deploy as deploy
+        from atdrone.deploy.mocap import MocapError
+
+        cfg = load_deploy(args.config, backend=args.backend, episodes=args.episodes, out_dir=args.out_dir)
+        if args.compare and cfg.backend != "sim":
+            say_error(args, "--compare needs the sim backend")
+            return EXIT_USAGE
+        try:
+            result = deploy(cfg, arm=args.arm, tracking_uri=args.tracking_uri, compare=args.compare)
+        except (DeployError, BridgeError, MocapError) as exc:  # a KeyError here is a bug (the deploy names its own)
+            say_error(args, exc.args[0] if exc.args else exc)
+            return 1
+    except BaseException as exc:  # a stop signal before the job took them over: nothing was armed
+        if not interrupted(exc) or args.debug:
+            raise
+        print(f"{program(args)}: interrupted; nothing armed; {_deploy_again(args)}", file=sys.stderr)
+        return interrupt_exit_code(exc)
     if result.summary is not None:
         from atdrone.deploy.flightlog import format_summary
 
         print(format_summary(result.summary))
+    if result.stopped_by:  # every drone landed first (one that could not is named)
+        print(
+            f"{program(args)}: interrupted; {_kept_flight(result, cfg.episodes)}; {_deploy_again(args)}",
+            file=sys.stderr,
+        )
+        return 128 + signal.Signals[result.stopped_by]
+    if not result.preflight.ok:
+        return 1
     if result.ended_early:  # an armed flight that did not fly its episodes: every drone landed first
         flown = f"{result.episodes_flown}/{cfg.episodes}"
         say_error(args, f"flight ended early after {flown} episode(s): {result.ended_early}")
         return 1
     if result.gap is not None:
+        from atdrone.deploy.gap import format_gap
+
         print(format_gap(result.gap))
         assert result.log_dir is not None
         from atdrone.fileio import atomic_write_bytes
 
         atomic_write_bytes(result.log_dir / "gap.json", json.dumps(result.gap, indent=2).encode())
     return 0
+
+
+def _kept_flight(result: DeployResult, episodes: int) -> str:
+    """How an interrupted deploy job left the drones and what it kept, for its last line."""
+    if not result.flown:
+        return "nothing armed"
+    down = {n: e for n, e in (result.endings or {}).items() if e != "landed"}
+    drones = "not landed: " + ", ".join(f"{n} {e}" for n, e in down.items()) if down else "every drone landed"
+    return f"{drones} after {result.episodes_flown}/{episodes} episode(s); kept the flight log {result.log_dir}"
+
+
+def _deploy_again(args: argparse.Namespace) -> str:
+    """The command that runs the same deploy job again."""
+    flags = [args.config, *(["--arm"] if args.arm else []), *(["--compare"] if args.compare else [])]
+    for flag, value in (
+        ("--backend", args.backend),
+        ("--episodes", args.episodes),
+        ("--out-dir", args.out_dir),
+        ("--tracking-uri", args.tracking_uri),
+    ):
+        if value is not None:
+            flags += [flag, str(value)]
+    return f"{'fly' if args.arm else 'run'} again with: {invocation(args)} {shlex.join(flags)}"

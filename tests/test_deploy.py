@@ -14,6 +14,8 @@ from __future__ import annotations
 import gc
 import json
 import os
+import shlex
+import signal
 import subprocess
 import sys
 import tempfile
@@ -520,6 +522,7 @@ def test_every_drone_lands_softly_after_a_fault_on_a_busy_host(
     else:
         assert not result.ended_early and result.episodes_flown == 1
     landed_softly(result)
+    assert result.stopped_by == fault.get("signal", "")  # the entry points' line and status (below)
     if fault["kind"] == "signal":
         assert stop.signal == fault["signal"]
     if fault["kind"] == "mocap_freeze":  # frames kept coming: the frozen pose was seen as stale all the same
@@ -632,3 +635,44 @@ def test_cli_dry_run_report_and_an_early_end(
     path.write_text(json.dumps(bad))
     assert cli_main(["deploy", str(path)]) == 2
     assert "episodes: must be > 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("entry", "name", "code"),
+    [("jobs/deploy.py", "SIGTERM", 143), ("atdrone deploy", "SIGINT", 130)],
+    ids=["job-sigterm", "cli-sigint"],
+)
+def test_a_stop_signal_lands_every_drone_then_ends_in_one_interrupted_line_with_the_signals_status(
+    tmp_path: Path,
+    registry_member: tuple[str, str],
+    capsys: pytest.CaptureFixture[str],
+    load_script: Callable[[Path], Any],
+    entry: str,
+    name: str,
+    code: int,
+) -> None:
+    """`ray job stop` (SIGTERM) or Ctrl-C in the air: every drone lands, the log is written, and the last line
+    says so, names the log and the command that flies again; the status is the signal's, as for every entry
+    point (143, 130)."""
+    doc = sim_doc(tmp_path, registry_member, horizon=80, faults=[{"kind": "signal", "signal": name, "at": FAULT_AT}])
+    path = tmp_path / "deploy.json"
+    path.write_text(json.dumps(doc))
+    args = [str(path), "--arm", "--tracking-uri", f"sqlite:///{tmp_path / 'mlflow.db'}"]
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}  # main installs its own
+    try:
+        if entry == "jobs/deploy.py":
+            status = load_script(ROOT / "jobs" / "deploy.py").main(args)
+        else:
+            status = cli_main(["deploy", *args])
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    (log,) = (tmp_path / "flights").iterdir()
+    again = f"{'python ' if entry.endswith('.py') else ''}{entry} {shlex.join(args)}"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"{entry}: interrupted; every drone landed after 0/1 episode(s); kept the flight log {log}; "
+        f"fly again with: {again}"
+    )
+    assert status == code
+    endings = json.loads((log / "meta.json").read_text())["endings"]
+    assert endings and set(endings.values()) == {"landed"}, endings

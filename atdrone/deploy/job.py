@@ -42,7 +42,7 @@ from atdrone.deploy.gap import format_gap, simulation_gap
 from atdrone.deploy.loop import FaultClock, Flight, StopRequest, Team
 from atdrone.deploy.mocap import MocapSource, MotionCaptureSource, SimMocap
 from atdrone.deploy.preflight import Preflight, plan_text, run_preflight
-from atdrone.errors import UserError
+from atdrone.errors import STOP_SIGNALS, UserError
 from atdrone.policies.base import Policy
 
 __all__ = ["DeployError", "DeployResult", "format_gap", "run_deploy", "simulation_gap"]
@@ -71,6 +71,7 @@ class DeployResult:
     fleet: dict[str, dict[str, Any]] | None = None  # sim backend: per drone what the simulated firmware saw
     endings: dict[str, str] | None = None  # per drone: landed, cut in the air at Z m (STATE), lost (...)
     t0: float = 0.0  # clock time the flight started (the faults' time origin)
+    stopped_by: str = ""  # the stop signal received (SIGTERM, SIGINT): every drone landed first; "" when none
 
 
 def effective_task(cfg: DeployConfig) -> TaskConfig:
@@ -334,10 +335,14 @@ def run_deploy(
     say: Say = print,
     stop: StopRequest | None = None,
 ) -> DeployResult:
-    """The deploy job (see the module docstring). Nothing arms unless ``arm``."""
+    """The deploy job (see the module docstring). Nothing arms unless ``arm``; a stop signal lands every drone
+    and the result names it (:attr:`DeployResult.stopped_by`)."""
     stop = StopRequest() if stop is None else stop
     with stop.handling_signals():  # SIGINT / SIGTERM from here on: every drone lands
-        return _deploy(cfg, arm, tracking_uri, compare, say, stop)
+        result = _deploy(cfg, arm, tracking_uri, compare, say, stop)
+    if stop.signal in {s.name for s in STOP_SIGNALS}:
+        result.stopped_by = stop.signal
+    return result
 
 
 def _deploy(
