@@ -375,6 +375,13 @@ class CflibBridge:
                 f"{', '.join(sorted(pending))} cannot fly {timeout:g} s after arming (supervisor's can-fly bit)"
             )
 
+    # ------------------------------------------------------------ commands (queued for the sender)
+    def _queue(self, name: str, kind: str, fn: Callable[[], None]) -> None:
+        with self._lock:
+            self._setpoints.pop(name, None)  # a setpoint posted before must not override the command
+            self._commands.append((kind, fn))
+        self._wake.set()
+
     def request_arming(self, names: Sequence[str]) -> None:
         """Queue an arming request (in order, before a takeoff queued after it; an armed drone ignores it)."""
         for n in names:
