@@ -443,7 +443,7 @@ def test_first_runs_the_matching_cells_first_in_pattern_order_and_refuses_a_patt
         run_order(grid, ["sp-4p2e1-*"])
 
 
-def test_the_time_left_counts_each_pending_cell_at_its_methods_mean_wall_time() -> None:
+def test_the_time_left_counts_each_pending_cell_at_its_methods_median_wall_time() -> None:
     from atdrone.benchmark.cells import Cell
     from atdrone.benchmark.job import _progress_line
 
@@ -453,11 +453,12 @@ def test_the_time_left_counts_each_pending_cell_at_its_methods_mean_wall_time() 
         Cell("br", "br", "4p2e1o", 0, "zoo1"),
     ]
     # sp: the median (a cell that sat out a pause, 3,000 s, is no guide); hola, br: none finished, the mean of the
-    # methods' medians, 181 s
-    walls = {"floor": [1.0, 3.0, 2.0], "sp": [300.0, 420.0, 360.0, 3000.0, 330.0]}
-    # one at a time: 360 + 181 + 181 s = 12.0 min; two at once: half of it
-    assert _progress_line(4, 1, 2, walls, pending) == "cells: 4 done, 1 running, 2 left; about 12.0 min left"
-    assert _progress_line(4, 2, 1, walls, pending).endswith("; about 6.0 min left")
+    # training methods' medians (sp 360 s, br 240 s: 300 s; the floors train nothing)
+    walls = {"floor": [1.0, 3.0, 2.0], "sp": [300.0, 420.0, 360.0, 3000.0, 330.0], "br": [240.0]}
+    # one at a time: 360 + 300 + 240 s = 15.0 min; two at once: half of it
+    assert _progress_line(4, 1, 2, walls, pending) == "cells: 4 done, 1 running, 2 left; about 15.0 min left"
+    assert _progress_line(4, 2, 1, walls, pending).endswith("; about 7.5 min left")
+    assert _progress_line(4, 1, 2, {"floor": [2.0]}, pending).endswith("; about 0.1 min left")  # floors alone
     assert _progress_line(0, 1, 2, {}, pending) == "cells: 0 done, 1 running, 2 left"  # nothing to go by yet
     # a resumed job starts from the cells finished before it: a record's every attempt, one without timing left out
     from atdrone.benchmark.job import finished_walls

@@ -292,12 +292,13 @@ def _progress_line(
 ) -> str:
     """``cells: 3 done, 1 running, 6 left; about 4 min left``: each pending cell at the median wall time of its
     method's finished cells (:func:`finished_walls`, then each finished here; a method none finished yet: the mean of
-    the methods' medians), as many at once as run now. The median: a cell that ran across a pause or beside other
-    work would pull a mean far up."""
+    the training methods' medians), as many at once as run now. The median: a cell that ran across a pause or beside
+    other work would pull a mean far up."""
     line = f"cells: {done} done, {running} running, {left} left"
     typical = {m: statistics.median(ws) for m, ws in walls.items() if ws}  # a cell that sat out a pause is no guide
     if typical and pending:
-        overall = sum(typical.values()) / len(typical)
+        trained = [w for m, w in typical.items() if m != "floor"] or list(typical.values())  # floors train nothing
+        overall = sum(trained) / len(trained)
         total = sum(typical.get(c.method, overall) for c in pending)
         line += f"; about {total / max(1, running) / 60:.1f} min left"
     return line
