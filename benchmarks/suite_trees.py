@@ -8,7 +8,7 @@ the whole record.
 
     git worktree add --detach /tmp/before <commit>
     python benchmarks/suite_trees.py --tree before=/tmp/before --tree now=. --rounds 2 -- \
-        -n 2 tests/test_service.py tests/test_teammate_service.py
+        -n 2 tests/test_service.py tests/test_service_runs.py tests/test_teammate_service.py
 """
 
 from __future__ import annotations

@@ -27,9 +27,15 @@ _RAY_MODULES = (
     "test_learner",
     "test_registry",
     "test_service",
+    "test_service_runs",
     "test_teammate_service",
 )
-_FLIGHT_MODULES = ("test_deploy", "test_simfleet")
+# a module split in two stays one group: its halves on one worker, as before the split (no second Ray for it)
+_RAY_GROUPS = {"test_service_runs": "test_service"}
+_FLIGHT_MODULES = ("test_deploy", "test_deploy_faults", "test_simfleet")
+
+# the test modules' shared helpers: their asserts explained on failure as a test module's are
+pytest.register_assert_rewrite("flight_helpers", "service_helpers")
 
 # Every Ray a test starts (the session's, a test's head or cluster; each inherits this environment) starts a
 # worker process only for an actor or task that asks for one: no idle Python workers started ahead of time at
@@ -45,7 +51,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         module = item.path.stem
         if module in _RAY_MODULES:
-            item.add_marker(pytest.mark.xdist_group(module))
+            item.add_marker(pytest.mark.xdist_group(_RAY_GROUPS.get(module, module)))
         elif module in _FLIGHT_MODULES:
             item.add_marker(pytest.mark.xdist_group("flight"))
 

@@ -1,8 +1,8 @@
 """The whole test suite as `make test` runs it: the simulated flights beside everything else.
 
-The deploy flights (tests/test_deploy.py, tests/test_deploy_backup.py, tests/test_simfleet.py) run in real time on a
-scaled clock and mostly wait for it (about a third of a core); the rest (Ray, training,
-evaluation) is CPU-bound. So the flights run as their own pytest session at normal
+The deploy flights (tests/test_deploy.py, tests/test_deploy_faults.py, tests/test_deploy_backup.py,
+tests/test_simfleet.py) run in real time on a scaled clock and mostly wait for it (about a third of a
+core); the rest (Ray, training, evaluation) is CPU-bound. So the flights run as their own pytest session at normal
 priority while the rest runs on two xdist workers at ``nice`` +15: the flights get the CPU
 when their clock needs it (their loop is never starved by a Ray test, as it could be on a
 shared worker), and the waiting is no longer added to the suite's time. A command given
@@ -27,7 +27,12 @@ import tempfile
 from pathlib import Path
 from typing import IO
 
-FLIGHTS = ("tests/test_deploy.py", "tests/test_deploy_backup.py", "tests/test_simfleet.py")
+FLIGHTS = (
+    "tests/test_deploy.py",
+    "tests/test_deploy_faults.py",
+    "tests/test_deploy_backup.py",
+    "tests/test_simfleet.py",
+)
 # CFS weights: a nice 0 thread 1024, nice 15 36; the main session runs some 20 processes (two Ray sessions),
 # so at +5 (335 each) a flight thread could get as little as an eighth of a core; at +15 it gets what it asks
 NICE = 15

@@ -6,133 +6,45 @@ retried packets, the shield's and the heartbeat's thresholds; a test changes onl
 member (a registry entry), the horizon, the faults and where the log goes. The checks
 read the flight log the job wrote, what the simulated firmware saw (its counters, what
 stopped its motors and when, every impact with the floor, its true height) and the
-preflight's findings. The fault flights run beside two busy-looping processes.
+preflight's findings. Here: the config's errors, whole flights, the separation shield,
+the preflight's refusals and the CLI's dry run and report; the fault flights (beside two
+busy-looping processes) and the stop signals are in tests/test_deploy_faults.py, the
+helpers they share in tests/flight_helpers.py.
 """
 
 from __future__ import annotations
 
 import gc
 import json
-import os
-import shlex
-import signal
-import subprocess
-import sys
-import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import pytest
+from flight_helpers import (  # noqa: F401  (the fixtures; busy_host, landed_softly: tests/test_deploy_backup.py's)
+    CHECKPOINT,
+    FAULT_AT,
+    RATE,
+    ROOT,
+    TOC_CACHE,
+    _mlflow_db,
+    busy_host,
+    end_states,
+    fly,
+    landed_softly,
+    min_scaled_separation,
+    registry_member,
+    sim_doc,
+    ticks,
+)
 
 from atdrone.cli import main as cli_main
 from atdrone.config import ConfigError
 from atdrone.deploy.config import load_deploy
-from atdrone.deploy.job import run_deploy
-from atdrone.deploy.loop import COLUMN_CLEAR, StopRequest
+from atdrone.deploy.loop import COLUMN_CLEAR
 from atdrone.deploy.shield import geofence
-
-ROOT = Path(__file__).resolve().parent.parent
-CHECKPOINT = next(
-    p
-    for p in (
-        ROOT / "configs" / "zoos" / "checkpoints" / "4p2e1o" / "sp_high.pt",
-        ROOT / "configs" / "zoos" / "checkpoints" / "sp_high.pt",
-    )
-    if p.is_file()
-)
-SHIPPED = json.loads((ROOT / "configs" / "deploy" / "sim_4p2e1o.json").read_text())
-RATE = SHIPPED["sim"]["clock_rate"]  # the simulated clock's speed: a host's pause costs the drones RATE x its length
-TOC_CACHE = Path(tempfile.gettempdir()) / "atdrone-test-toc"
-AIRBORNE = ("taking_off", "flying", "landing")
-
-
-@pytest.fixture(autouse=True)
-def _mlflow_db(tmp_path: Path, mlflow_store: Callable[[Path], str]) -> None:
-    """The flights' MLflow store (``tmp_path / "mlflow.db"``), made with its schema."""
-    mlflow_store(tmp_path / "mlflow.db")
-
-
-@pytest.fixture(scope="module")
-def registry_member(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str]:
-    """A registry file holding one member (the sp_high checkpoint) and that member's id."""
-    from atdrone.registry import Registry
-
-    db = tmp_path_factory.mktemp("registry") / "registry.db"
-    with Registry(db) as reg:
-        member = reg.add_checkpoint(CHECKPOINT, run="deploy-test", generation=0)
-    return str(db), member
-
-
-def sim_doc(tmp_path: Path, registry_member: tuple[str, str], **changes: Any) -> dict[str, Any]:
-    db, member = registry_member
-    doc = json.loads(json.dumps(SHIPPED))
-    assert "radio" not in doc and "shield" not in doc  # the shipped config keeps every default: so do the tests
-    doc.update(member={"registry": db, "id": member}, horizon=40, out_dir=str(tmp_path / "flights"))
-    doc["radio"] = {"toc_cache": str(TOC_CACHE)}  # where cflib caches the tables (no threshold)
-    doc.update(changes)
-    return doc
-
-
-def fly(
-    tmp_path: Path, registry_member: tuple[str, str], arm: bool = True, stop: StopRequest | None = None, **changes: Any
-):
-    cfg = load_deploy(sim_doc(tmp_path, registry_member, **changes))
-    result = run_deploy(cfg, arm=arm, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}", say=print, stop=stop)
-    print(f"ended early: {result.ended_early!r}")  # shown with a failure
-    for n, v in (result.fleet or {}).items():
-        print(n, "true", np.round(v["pos"], 3), "stopped by", v["history"], "impacts", v["impacts"][-2:])
-    return result
-
-
-def ticks(result: Any) -> pd.DataFrame:
-    return pd.read_parquet(result.log_dir / "flight.parquet")
-
-
-def end_states(frame: pd.DataFrame) -> dict[str, str]:
-    physical = frame[frame.state != "virtual"]
-    return physical.groupby("drone")["state"].last().to_dict()
-
-
-class Closest(float):
-    """A scaled separation that says, when an assertion shows it, where it happened."""
-
-    where: str
-
-    def __repr__(self) -> str:
-        return f"{float(self)!r} ({self.where})"
-
-
-def min_scaled_separation(frame: pd.DataFrame, radius: float = 0.125, half_height: float = 0.375) -> Closest:
-    """The smallest scaled ellipsoid distance between two airborne drones at one tick (< 1: they touched),
-    with the tick, the pair, their states and the shield's events around it for a failure's message."""
-    air = frame[frame.state.isin(AIRBORNE)]
-    grid = air.groupby(["t", "drone"])[["x", "y", "z"]].first().unstack("drone")
-    names = list(grid["x"].columns)
-    pos = np.stack([grid[c][names].to_numpy(np.float64) for c in "xyz"], -1)
-    delta = (pos[:, :, None] - pos[:, None]) / np.array([2 * radius, 2 * radius, 2 * half_height])
-    scaled = np.sqrt((delta**2).sum(-1))
-    scaled[:, np.arange(len(names)), np.arange(len(names))] = np.inf
-    scaled = np.where(np.isfinite(scaled), scaled, np.inf)
-    k, a, b = np.unravel_index(int(np.argmin(scaled)), scaled.shape)
-    t = float(grid.index[k])
-    pair = frame[frame.drone.isin([names[a], names[b]]) & frame.t.between(t - 1.0, t + 0.2)]
-    cols = ["t", "step", "drone", "state", "x", "y", "z", "setpoint_x", "setpoint_y", "events", "latency_tick"]
-    cols = [c for c in cols if c in frame.columns]
-    out = Closest(scaled[k, a, b])
-    out.where = f"t={t:.2f}, {names[a]}-{names[b]}; the second before:\n{pair[cols].to_string()}"
-    return out
-
-
-def stops(result: Any, why: str) -> dict[str, float]:
-    """Per drone, the first clock time (since the flight began) the simulated firmware stopped it for ``why``."""
-    return {
-        n: min(t for t, w in v["history"] if w == why) - result.t0
-        for n, v in result.fleet.items()
-        if any(w == why for _, w in v["history"])
-    }
 
 
 def landed_before_any_stop(result: Any, frame: pd.DataFrame) -> None:
@@ -439,175 +351,6 @@ def test_preflight_refuses(
     assert result.sent.get("arming", 0) == 0
 
 
-# ---------------------------------------------------------------- faults
-IMPACT = 0.5  # m/s: the fastest a drone may meet the floor to count as landed
-FAULT_AT = 6.0  # s into the flight: after the takeoff, on the way to the spawn or in the episode
-
-
-@pytest.fixture
-def busy_host() -> Iterator[None]:
-    """Two processes spinning beside the flight, all on one core: the ground station (this process) shares that
-    core with two busy loops, a third of it at best. That is harsher than two busy loops on a 2-core host (two
-    thirds of a core each), the same on any machine, and leaves the other cores to the suite's other tests,
-    which two loops free to roam would starve. The simulated fleet, the drones' own hardware, leaves the core
-    for any (atdrone.deploy.simproc)."""
-    allowed = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
-    if allowed:
-        os.sched_setaffinity(0, {max(allowed)})  # inherited by the loops and everything the flight starts
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
-    try:
-        yield
-    finally:
-        for p in procs:
-            p.kill()
-            p.wait()
-        if allowed:
-            os.sched_setaffinity(0, allowed)
-
-
-def landed_softly(result: Any, exclude: tuple[str, ...] = ()) -> None:
-    """Every drone (but ``exclude``) is on the floor by its simulated true height with its motors off, met the
-    floor slower than :data:`IMPACT`, and the job says it landed."""
-    for n, v in result.fleet.items():
-        if n in exclude:
-            continue
-        assert v["pos"][2] == 0.0 and not v["motors_on"], (n, v["pos"], v["history"])
-        assert max((speed for _, speed, _ in v["impacts"]), default=0.0) < IMPACT, (n, v["impacts"], v["history"])
-        assert result.endings[n] == "landed", result.endings
-
-
-@pytest.mark.parametrize(
-    ("fault", "reason"),
-    [
-        ({"kind": "link_dropout", "drone": "cf3", "duration": 0.2}, ""),
-        ({"kind": "mocap_dropout", "duration": 1.0}, "shield: all_stale"),
-        ({"kind": "mocap_dropout", "duration": 60.0}, "shield: all_stale"),
-        ({"kind": "mocap_freeze", "drone": "cf3", "duration": 1.0}, "shield: stale_pose"),
-        ({"kind": "mocap_freeze", "duration": 1.0}, "shield: all_stale"),
-        ({"kind": "low_battery", "drone": "cf2", "volts": 3.2}, "shield: battery"),
-        ({"kind": "pose_blocked", "drone": "cf3", "duration": 60.0}, "shield: estimate_off"),
-        ({"kind": "policy_stall", "duration": 2.0}, "shield: policy_stall"),
-        ({"kind": "signal", "signal": "SIGINT"}, "shield: signal"),
-        ({"kind": "signal", "signal": "SIGTERM"}, "shield: signal"),
-        ({"kind": "exception"}, "InjectedFault: an exception injected"),
-    ],
-    ids=[
-        "link-lost-0.2s",
-        "mocap-out-1s",
-        "mocap-out-for-good",
-        "one-body-frozen-1s",
-        "all-bodies-frozen-1s",
-        "low-battery",
-        "poses-kept-from-cf3",
-        "policy-stall-2s",
-        "sigint",
-        "sigterm",
-        "exception",
-    ],
-)
-def test_every_drone_lands_softly_after_a_fault_on_a_busy_host(
-    tmp_path: Path, registry_member: tuple[str, str], busy_host: None, fault: dict[str, Any], reason: str
-) -> None:
-    """The shipped config, the fault injected once, two busy loops beside: every drone ends on the floor, its
-    motors off, having met it under 0.5 m/s; the job names the most severe reaction's rule (none where the
-    fault was ridden out)."""
-    stop = StopRequest()
-    cfg = load_deploy(sim_doc(tmp_path, registry_member, horizon=80, faults=[{**fault, "at": FAULT_AT}]))
-    result = run_deploy(cfg, arm=True, tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}", say=print, stop=stop)
-    print(f"ended early: {result.ended_early!r}; {result.endings}")
-    frame = ticks(result)
-    assert frame.events.str.contains(f"fault:{fault['kind']}").any()
-    if reason:
-        assert result.ended_early.startswith(reason) and "not landed" not in result.ended_early
-    else:
-        assert not result.ended_early and result.episodes_flown == 1
-    landed_softly(result)
-    assert result.stopped_by == fault.get("signal", "")  # the entry points' line and status (below)
-    if fault["kind"] == "signal":
-        assert stop.signal == fault["signal"]
-    if fault["kind"] == "mocap_freeze":  # frames kept coming: the frozen pose was seen as stale all the same
-        frozen = frame[frame.events.str.contains("stale_pose|all_stale") & (frame.drone == fault.get("drone", "cf1"))]
-        assert len(frozen), "the frozen pose was taken as fresh"
-    if fault["kind"] == "policy_stall":  # the next policy step stalls: held from outside the call at once
-        first = frame[frame.step >= 0].t.min()
-        late = frame[frame.events.str.contains("policy_late")]
-        assert len(late) and late.t.min() - first < 0.5
-
-
-def test_a_link_lost_for_good_gets_land_commands_until_the_end_and_is_reported_lost(
-    tmp_path: Path, registry_member: tuple[str, str], busy_host: None
-) -> None:
-    """A learner drone whose link dies is marked lost (not the whole fleet): it gets the land command on every tick
-    it is lost, the others land; its own firmware cuts its motors (no keep-alive reaches it), and the job says it
-    did not land and exits non-zero. (A partner drone's lost link drops it alone: tests/test_deploy_backup.py.)"""
-    result = fly(tmp_path, registry_member, horizon=80, faults=[{"kind": "link_loss", "at": FAULT_AT, "drone": "cf1"}])
-    frame = ticks(result)
-    lost = frame[(frame.drone == "cf1") & (frame.state == "lost")]
-    assert len(lost) and (frame[frame.drone != "cf1"].state != "lost").all()
-    assert result.sent["land"] >= len(lost) and result.ended_early.startswith("shield: link_lost")
-    assert result.endings["cf1"].startswith("lost") and "not landed: cf1 lost" in result.ended_early
-    assert "estop_watchdog" in {w for _, w in result.fleet["cf1"]["history"]}
-    landed_softly(result, exclude=("cf1",))
-
-
-def test_a_host_paused_past_the_dead_man_limit_is_cut_by_the_firmware(
-    tmp_path: Path, registry_member: tuple[str, str], busy_host: None
-) -> None:
-    """SIGSTOP for 0.7 wall seconds: 1.4 s of the drones' clock (the shipped rate 2), past their 1 s
-    emergency-stop watchdog (docs/deploy.md, "The ground station's host"). The firmware cuts every motor; the
-    job says which drones were cut in the air, at what height, and exits non-zero. Nothing is judged lost."""
-    result = fly(
-        tmp_path, registry_member, horizon=80, faults=[{"kind": "host_pause", "at": FAULT_AT, "duration": 0.7}]
-    )
-    frame = ticks(result)
-    assert frame.events.str.contains("host_pause").any()
-    assert set(stops(result, "estop_watchdog")) == set(result.fleet)
-    assert all(e.startswith("cut in the air at") for e in result.endings.values()), result.endings
-    assert "not landed" in result.ended_early and (frame.state != "lost").all()
-
-
-def test_a_hung_loop_is_stopped_by_the_firmware_watchdog_within_1_5_s(
-    tmp_path: Path, registry_member: tuple[str, str]
-) -> None:
-    result = fly(tmp_path, registry_member, horizon=80, faults=[{"kind": "loop_hang", "at": FAULT_AT, "duration": 2.0}])
-    frame = ticks(result)
-    hang = frame[frame.events.str.contains("fault:loop_hang")].t.min()
-    assert np.isfinite(hang)
-    stopped = stops(result, "estop_watchdog")
-    assert set(stopped) == set(result.fleet), result.fleet
-    assert all(0 < t - hang <= 1.5 for t in stopped.values()), {n: t - hang for n, t in stopped.items()}
-    assert result.ended_early.startswith("shield: locked") and result.episodes_flown == 0
-    assert set(end_states(frame).values()) == {"stopped"}
-
-
-def test_a_drifting_drone_is_held_on_its_reference(
-    tmp_path: Path, registry_member: tuple[str, str], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A steady 1 m/s^2 push (wind): Mellinger's kp 0.4 / mass 0.029 leaves 0.029 / 0.4 = 7 cm of offset."""
-    from atdrone.deploy import job
-    from atdrone.deploy.team import Team
-
-    fleets: list[Any] = []
-    schedule, new_episode = job._schedule, Team.new_episode
-
-    def keep_fleet(cfg: Any, faults: Any, fleet: Any, *args: Any) -> None:
-        fleets.append(fleet)
-        schedule(cfg, faults, fleet, *args)
-
-    def push_at_start(self: Team, rng: np.random.Generator) -> None:  # the wind rises as the episode begins
-        fleets[0].push("cf1", np.array([1.0, 0.0, 0.0]))
-        new_episode(self, rng)
-
-    monkeypatch.setattr(job, "_schedule", keep_fleet)
-    monkeypatch.setattr(Team, "new_episode", push_at_start)
-    result = fly(tmp_path, registry_member, horizon=60)
-    assert not result.ended_early
-    frame = ticks(result)
-    rows = frame[(frame.drone == "cf1") & (frame.step >= 20)]
-    offset = np.hypot(rows.x - rows.setpoint_x, rows.y - rows.setpoint_y)
-    assert offset.median() < 0.12
-
-
 # ---------------------------------------------------------------- the CLI
 def test_cli_dry_run_report_and_an_early_end(
     tmp_path: Path, registry_member: tuple[str, str], capsys: pytest.CaptureFixture[str]
@@ -635,44 +378,3 @@ def test_cli_dry_run_report_and_an_early_end(
     path.write_text(json.dumps(bad))
     assert cli_main(["deploy", str(path)]) == 2
     assert "episodes: must be > 0" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize(
-    ("entry", "name", "code"),
-    [("jobs/deploy.py", "SIGTERM", 143), ("atdrone deploy", "SIGINT", 130)],
-    ids=["job-sigterm", "cli-sigint"],
-)
-def test_a_stop_signal_lands_every_drone_then_ends_in_one_interrupted_line_with_the_signals_status(
-    tmp_path: Path,
-    registry_member: tuple[str, str],
-    capsys: pytest.CaptureFixture[str],
-    load_script: Callable[[Path], Any],
-    entry: str,
-    name: str,
-    code: int,
-) -> None:
-    """`ray job stop` (SIGTERM) or Ctrl-C in the air: every drone lands, the log is written, and the last line
-    says so, names the log and the command that flies again; the status is the signal's, as for every entry
-    point (143, 130)."""
-    doc = sim_doc(tmp_path, registry_member, horizon=80, faults=[{"kind": "signal", "signal": name, "at": FAULT_AT}])
-    path = tmp_path / "deploy.json"
-    path.write_text(json.dumps(doc))
-    args = [str(path), "--arm", "--tracking-uri", f"sqlite:///{tmp_path / 'mlflow.db'}"]
-    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}  # main installs its own
-    try:
-        if entry == "jobs/deploy.py":
-            status = load_script(ROOT / "jobs" / "deploy.py").main(args)
-        else:
-            status = cli_main(["deploy", *args])
-    finally:
-        for s, h in handlers.items():
-            signal.signal(s, h)
-    (log,) = (tmp_path / "flights").iterdir()
-    again = f"{'python ' if entry.endswith('.py') else ''}{entry} {shlex.join(args)}"
-    assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        f"{entry}: interrupted; every drone landed after 0/1 episode(s); kept the flight log {log}; "
-        f"fly again with: {again}"
-    )
-    assert status == code
-    endings = json.loads((log / "meta.json").read_text())["endings"]
-    assert endings and set(endings.values()) == {"landed"}, endings
