@@ -210,6 +210,8 @@ def test_a_backup_takes_the_dropped_slot_at_a_pose_safe_spawn_on_a_busy_host(
     assert change["memory_reset"] and change["took_slot_t"] > change["t"], change
     took = frame[frame.events.str.contains("took_slot:2")]
     assert list(took.drone) == ["cf7"] and abs(float(took.t.iloc[0]) - change["took_slot_t"]) < 1e-6
+    dropped = frame[frame.events.str.contains("dropped:battery")]  # the drop's row is its record's tick too
+    assert list(dropped.drone) == ["cf3"] and abs(float(dropped.t.iloc[0]) - change["t"]) < 1e-6
     at = frame[frame.t == took.t.iloc[0]].set_index("drone")
     spot = at.loc["cf7", ["x", "y"]].to_numpy(np.float64)
     lo, hi = slot_box(2)
@@ -300,6 +302,7 @@ def test_a_backup_called_late_in_an_episode_takes_the_slot_for_the_next(
     assert change["drone"] == "cf4" and change["backup"] == "cf7" and change["took_slot_episode"] == 1, change
     took = frame[frame.events.str.contains("took_slot:3")]
     assert list(took.drone) == ["cf7"] and (took.step == -1).all()  # between episodes, not in one
+    assert abs(float(took.t.iloc[0]) - change["took_slot_t"]) < 1e-6  # in a tick of its own, the one it names
     flown = frame[(frame.drone == "cf7") & (frame.episode == 1) & (frame.step >= 0)]
     assert len(flown) >= 20 and (flown.state == "flying").all()
 

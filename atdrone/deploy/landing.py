@@ -101,7 +101,7 @@ class Landing:
     ) -> ShieldDecision:
         raise NotImplementedError
 
-    def _hold_tick(self) -> bool:
+    def _hold_tick(self, first: Callable[[], None] | None = None) -> bool:
         raise NotImplementedError
 
     def _log_tick(
@@ -312,12 +312,13 @@ class Landing:
             pos, yaw, age = self.measured()
             decision = self._shield(pos, age, pos)  # no setpoints of ours: the high-level commander flies
             decision = replace(decision, events=tuple(e for e in decision.events if e.rule not in CLAMPS))
-            self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             reaction = self._react(decision, pos)
             self._separate_planned(decision, pos)
             self._reland(decision, pos, land=landing)
             self._call_lost()
             self._touchdown(pos)
+            # logged after the reactions, as every tick is: a drop's note is on the row of the tick its record names
+            self._log_tick(tick, -1, pos, yaw, decision, {}, None)
             if not landing and reaction.reaction >= Reaction.LAND_ONE:
                 return
             if landing and not any(self.state[n] == "landing" for n in self.names):

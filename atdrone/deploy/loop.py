@@ -367,10 +367,13 @@ class Flight(Episodes):
         self._call_lost()
         return ended
 
-    def _hold_tick(self) -> bool:
+    def _hold_tick(self, first: Callable[[], None] | None = None) -> bool:
         """One tick holding every streaming drone where it is (latched, zero velocity, through the shield);
-        False when the shield ended the flight."""
+        False when the shield ended the flight. ``first`` runs at the tick's start: what it does (its notes, the
+        times it records) is this tick's."""
         tick = self._begin_tick()
+        if first is not None:
+            first()
         pos, yaw, age = self.measured()
         here = np.where(np.isfinite(self.hold_at).all(1)[:, None], self.hold_at, pos)
         decision = self._shield(pos, age, here, np.zeros_like(pos))  # clamped into the fence, zero velocity

@@ -63,7 +63,7 @@ class Sequencing:
     _drawn: tuple[np.ndarray, np.ndarray]
 
     # provided by the flight
-    def _hold_tick(self) -> bool:
+    def _hold_tick(self, first: Callable[[], None] | None = None) -> bool:
         raise NotImplementedError
 
     def _begin_tick(self) -> float:
@@ -169,7 +169,10 @@ class Sequencing:
             self._set_state(up, "flying")
             k = [self.names.index(n) for n in up]
             self.hold_at[k], self.prev_setpoint[k] = np.nan, np.nan  # taken over from the planner
-        self._backups_up(waiting)  # a backup in the air takes its slot now (one that did not rise lands)
+        # a backup in the air takes its slot now (one that did not rise lands), in a tick of its own: its took_slot
+        # note and its record's took_slot_t name that tick (between ticks the note would go on the next tick's row)
+        if self._joining() and not self._hold_tick(first=lambda: self._backups_up(waiting)):
+            return None
         if self.aborted:
             return None
         start = self._at_height()
