@@ -126,21 +126,20 @@ FAULT_AT = 6.0  # s into the flight: after the takeoff, on the way to the spawn 
 
 @pytest.fixture
 def busy_host() -> Iterator[None]:
-    """Two processes spinning beside the flight, all on one core: the ground station (this process) shares that
-    core with two busy loops, a third of it at best. That is harsher than two busy loops on a 2-core host (two
-    thirds of a core each), the same on any machine, and leaves the other cores to the suite's other tests,
-    which two loops free to roam would starve. The simulated fleet, the drones' own hardware, leaves the core
-    for any (atdrone.deploy.simproc)."""
+    """A process spinning beside the flight on the ground station's core: the ground station (this process and what
+    it starts) is pinned to one core with a busy loop, half of that core at best, on any machine. That is harsher
+    than two busy loops on a 2-core host (two thirds of a core for the ground station's GIL-bound threads) and
+    leaves the other cores to the suite's other tests, which loops there would starve. A third of a core (two loops
+    on its core) lost flights on a loaded host (arming late, links silent). The simulated fleet, the drones' own hardware, leaves the core for any (atdrone.deploy.simproc)."""
     allowed = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
     if allowed:
-        os.sched_setaffinity(0, {max(allowed)})  # inherited by the loops and everything the flight starts
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+        os.sched_setaffinity(0, {max(allowed)})  # inherited by the loop and everything the flight starts
+    loop = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         yield
     finally:
-        for p in procs:
-            p.kill()
-            p.wait()
+        loop.kill()
+        loop.wait()
         if allowed:
             os.sched_setaffinity(0, allowed)
 
