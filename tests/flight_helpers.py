@@ -130,7 +130,8 @@ def busy_host() -> Iterator[None]:
     it starts) is pinned to one core with a busy loop, half of that core at best, on any machine. That is harsher
     than two busy loops on a 2-core host (two thirds of a core for the ground station's GIL-bound threads) and
     leaves the other cores to the suite's other tests, which loops there would starve. A third of a core (two loops
-    on its core) lost flights on a loaded host (arming late, links silent). The simulated fleet, the drones' own hardware, leaves the core for any (atdrone.deploy.simproc)."""
+    on its core) lost flights on a loaded host (arming late, links silent). The simulated fleet, the drones' own
+    hardware, leaves the core for any (atdrone.deploy.simproc)."""
     allowed = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
     if allowed:
         os.sched_setaffinity(0, {max(allowed)})  # inherited by the loop and everything the flight starts
