@@ -219,13 +219,15 @@ def hola_marks(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dict[
     return marks
 
 
-def stalled(walls: pd.Series, methods: pd.Series) -> pd.Series:
-    """Which cells stalled: wall time over :data:`STALL_FACTOR` times the median of their method's cells (every
-    task: a method's cells cost about the same on each), as when the machine running them was paused or busy
-    with other work. A method needs three cells for a median that one stall cannot move."""
+def stalled(walls: pd.Series, methods: pd.Series) -> tuple[pd.Series, pd.Series]:
+    """Which cells stalled, and each cell's wall time without its stall. A cell stalled when its wall time is over
+    :data:`STALL_FACTOR` times the median of its method's cells (every task: a method's cells cost about the same
+    on each), as when the machine running them was paused or busy with other work; a method needs three cells for
+    a median that one stall cannot move. A stalled cell's steady wall time is its method's median."""
     median = walls.groupby(methods).transform("median")
     counts = walls.groupby(methods).transform("size")
-    return (walls > STALL_FACTOR * median) & (counts >= 3)
+    flags = (walls > STALL_FACTOR * median) & (counts >= 3)
+    return flags, walls.where(~flags, median)
 
 
 def budget(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -235,13 +237,11 @@ def budget(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> tuple[pd.
     for rec in records:
         cell, spent = rec["cell"], rec.get("timing", {})
         row = {"method": cell["method"], "task": cell["task"], **{k: rec["budget"].get(k, 0) for k in BUDGET_KEYS}}
-        rows.append({**row, "cpu_s": spent.get("cpu_s", float("nan")), "wall_s": cell_wall(spent)})
-        timing.append({"cell": rec["name"], **spent, "cell_wall_s": cell_wall(spent)})
+        wall = cell_wall(spent)
+        rows.append({**row, "cpu_s": spent.get("cpu_s", float("nan")), "wall_s": wall})
+        timing.append({"cell": rec["name"], **spent, "cell_wall_s": wall})
     frame = pd.DataFrame(rows)
-    frame["stalled"] = stalled(frame["wall_s"], frame["method"])
-    # the wall time the cell would have taken without its stall: its method's median
-    median = frame.groupby("method")["wall_s"].transform("median")
-    frame["steady_wall_s"] = frame["wall_s"].where(~frame["stalled"], median)
+    frame["stalled"], frame["steady_wall_s"] = stalled(frame["wall_s"], frame["method"])
     rank = {m: i for i, m in enumerate(order(cfg))}
     table = (
         frame.groupby(["method", "task"], sort=False)
