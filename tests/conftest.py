@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from run_suite import FLIGHTS
 
 from atdrone.service.rayenv import STALL_TOLERANCE
 
@@ -32,7 +33,8 @@ _RAY_MODULES = (
 )
 # a module split in two stays one group: its halves on one worker, as before the split (no second Ray for it)
 _RAY_GROUPS = {"test_service_runs": "test_service"}
-_FLIGHT_MODULES = ("test_deploy", "test_deploy_faults", "test_simfleet")
+# the flights (real-time, on UDP): the modules `make test` runs as their own session (tests/run_suite.py)
+_FLIGHT_MODULES = tuple(Path(f).stem for f in FLIGHTS)
 
 # the test modules' shared helpers: their asserts explained on failure as a test module's are
 pytest.register_assert_rewrite("flight_helpers", "service_helpers")

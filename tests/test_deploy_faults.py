@@ -220,3 +220,42 @@ def test_a_stop_signal_lands_every_drone_then_ends_in_one_interrupted_line_with_
     assert status == code
     endings = json.loads((log / "meta.json").read_text())["endings"]
     assert endings and set(endings.values()) == {"landed"}, endings
+
+
+@pytest.mark.parametrize("when", ["before the job", "in the preflight"])
+def test_a_stop_signal_before_arming_arms_nothing_and_ends_in_one_interrupted_line(
+    tmp_path: Path,
+    registry_member: tuple[str, str],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    when: str,
+) -> None:
+    """SIGTERM while the config loads (before the job takes the signals over) or during the preflight checks (after):
+    nothing arms, no flight log is written, and the last line says ``nothing armed`` with the command that flies
+    again; the status is SIGTERM's, 143."""
+    import os
+
+    import atdrone.deploy.config as deploy_config
+    import atdrone.deploy.job as deploy_job
+
+    target, name = (deploy_config, "load_deploy") if when == "before the job" else (deploy_job, "run_preflight")
+    original = getattr(target, name)
+
+    def signalled(*args: Any, **kwargs: Any) -> Any:
+        os.kill(os.getpid(), signal.SIGTERM)  # delivered at once: the main thread's handler runs before this returns
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(target, name, signalled)
+    path = tmp_path / "deploy.json"
+    path.write_text(json.dumps(sim_doc(tmp_path, registry_member)))
+    args = [str(path), "--arm", "--tracking-uri", f"sqlite:///{tmp_path / 'mlflow.db'}"]
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}  # main installs its own
+    try:
+        status = cli_main(["deploy", *args])
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"atdrone deploy: interrupted; nothing armed; fly again with: atdrone deploy {shlex.join(args)}"
+    assert status == 143
+    assert not (tmp_path / "flights").exists() or not any((tmp_path / "flights").iterdir())
