@@ -160,18 +160,18 @@ def test_a_drifting_drone_is_held_on_its_reference(
     from atdrone.deploy.team import Team
 
     fleets: list[Any] = []
-    schedule, new_episode = job._schedule, Team.new_episode
+    schedule, draw = job._schedule, Team.draw
 
     def keep_fleet(cfg: Any, faults: Any, fleet: Any, *args: Any) -> None:
         fleets.append(fleet)
         schedule(cfg, faults, fleet, *args)
 
-    def push_at_start(self: Team, rng: np.random.Generator) -> None:  # the wind rises as the episode begins
+    def push_at_start(self: Team, rng: np.random.Generator) -> list[Any]:  # the wind rises as the episode begins
         fleets[0].push("cf1", np.array([1.0, 0.0, 0.0]))
-        new_episode(self, rng)
+        return draw(self, rng)
 
     monkeypatch.setattr(job, "_schedule", keep_fleet)
-    monkeypatch.setattr(Team, "new_episode", push_at_start)
+    monkeypatch.setattr(Team, "draw", push_at_start)
     result = fly(tmp_path, registry_member, horizon=60)
     assert not result.ended_early
     frame = ticks(result)

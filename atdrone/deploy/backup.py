@@ -41,7 +41,7 @@ from atdrone.deploy.landing import cut_by_firmware
 from atdrone.deploy.links import LinkView
 from atdrone.deploy.sequence import COLUMN_CLEAR
 from atdrone.deploy.shield import HOLD_MARGIN, Obstacles, ShieldConfig, ellipsoid_distance, obstacle_distance
-from atdrone.deploy.team import Team
+from atdrone.deploy.team import PolicyRunner, Team
 from atdrone.deploy.transit import LEASH, MARGIN
 from atdrone.envs.geometry import Geometry
 
@@ -131,6 +131,7 @@ class Backups:
     cfg: DeployConfig
     task: TaskConfig
     team: Team
+    policy: PolicyRunner
     bridge: Bridge
     clock: Clock
     shield_cfg: ShieldConfig
@@ -269,7 +270,7 @@ class Backups:
         self.slots[join.slot] = self.index[join.drone]
         self.present[join.slot] = True
         self.team_changed = True
-        self.team.forget(join.slot)
+        self.policy.between_steps(self.team.forget, join.slot)  # after a late step still acting for the old drone
         join.record.update(took_slot_t=self.tick_t - self.t0, took_slot_episode=self.episode, memory_reset=True)
         self.notes.setdefault(join.drone, []).append(f"took_slot:{join.slot}")
         self.progress(f"[deploy] backup {join.drone} took slot {join.slot} (memory reset)")

@@ -106,7 +106,7 @@ class Episodes(Backups, Landing, Sequencing):
         wander_heading, wander_left = head_e.copy(), self.rng.integers(lo, hi + 1, size=E)
         captured = np.zeros(E, dtype=bool)
         ret, steps, outcome = 0.0, 0, ""
-        self.team.new_episode(self.rng)
+        self.policy.between_steps(self.team.start, self.team.draw(self.rng))  # after a late step of the last
         self.team_changed = False
         prev_dist: np.ndarray | None = None
         held_for = np.zeros(E, dtype=bool)  # evader drones the shield held with a pursuer last tick

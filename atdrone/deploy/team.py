@@ -2,7 +2,10 @@
 
 :class:`Team`: the learner and the partner policies of one flight (a zoo draws the
 partners per episode). :class:`PolicyRunner`: the team's ``act`` in a worker thread, so a
-late policy never delays a tick: the loop holds the drones from outside the call.
+late policy never delays a tick: the loop holds the drones from outside the call. What
+changes the policies' state (a new episode's partners and memory, a slot's memory forgotten
+when a backup takes it) runs in that thread too, between two steps: a late step still
+running never sees half a change, nor writes its memory back over a forgotten slot.
 """
 
 from __future__ import annotations
@@ -28,9 +31,13 @@ class Team:
     partners: list[Policy]
     draw_partners: Callable[[np.random.Generator], list[Policy]] | None = None  # per episode (a zoo)
 
-    def new_episode(self, rng: np.random.Generator) -> None:
-        if self.draw_partners is not None:
-            self.partners = self.draw_partners(rng)
+    def draw(self, rng: np.random.Generator) -> list[Policy]:
+        """The partner policies of a new episode: drawn from the zoo with the flight's generator, else the same."""
+        return self.draw_partners(rng) if self.draw_partners is not None else self.partners
+
+    def start(self, partners: list[Policy]) -> None:
+        """A new episode with ``partners``: every policy's memory reset."""
+        self.partners = partners
         for p in [self.learner, *self.partners]:
             p.reset(np.ones(1, dtype=bool))
 
@@ -59,7 +66,13 @@ class PolicyRunner:
         self.team, self.clock, self.faults = team, clock, faults
         self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="policy")
         self._pending: concurrent.futures.Future[np.ndarray] | None = None
+        self._changes: list[concurrent.futures.Future[None]] = []  # submitted between steps, not yet seen done
         self.late_since: float | None = None  # clock time the pending step became late
+
+    def between_steps(self, change: Callable[..., None], *args: Any) -> None:
+        """Run ``change(*args)`` in the policy thread after the step in progress (if any) and before the next one;
+        returns at once (the flight never waits on a late step). Its error is raised by the next :meth:`act`."""
+        self._changes.append(self._pool.submit(change, *args))
 
     def _act(self, *args: Any) -> np.ndarray:
         if self.faults.stall:
@@ -69,6 +82,9 @@ class PolicyRunner:
 
     def act(self, timeout: float, *args: Any) -> np.ndarray | None:
         """Actions, or None when the step did not finish within ``timeout`` clock seconds (still pending)."""
+        for done in [c for c in self._changes if c.done()]:
+            self._changes.remove(done)
+            done.result()  # a change between steps failed: raise its error here
         if self._pending is not None and self._pending.done():
             self._pending.result()  # a stale step finished: re-raise its error, drop its actions
             self._pending = None
