@@ -193,12 +193,31 @@ def test_a_backup_takes_the_dropped_slot_at_a_pose_safe_spawn_on_a_busy_host(
     tmp_path: Path,
     registry_member: tuple[str, str],  # noqa: F811
     busy_host: None,  # noqa: F811
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """The shipped backup config, cf3's battery low beside two busy loops: cf3 lands alone, cf7 takes off, flies to
-    a spawn inside slot 2's region clear of every drone and takes the slot (its memory reset); no pair's
-    ellipsoids ever touch; every drone ends on the floor, landed; the flight log and its report say so."""
+    """The shipped backup config, cf3's battery low as the episode begins, beside a busy loop: cf3 lands alone, cf7
+    takes off, flies to a spawn inside slot 2's region clear of every drone and takes the slot (its memory reset);
+    no pair's ellipsoids ever touch; every drone ends on the floor, landed; the flight log and its report say so.
+
+    The battery runs low at the episode's start, not at a flight time: a drop before the episode (while the
+    drones fly to their spawns, which takes longer on a busier host) can put the backup in the air before the
+    episode begins, and such a backup takes its slot at once, wherever it is (tests/test_deploy_team_log.py)."""
+    from atdrone.deploy import job
+
+    fleets: list[Any] = []
+    schedule, draw = job._schedule, Team.draw
+
+    def keep_fleet(cfg: Any, faults: Any, fleet: Any, *args: Any) -> None:
+        fleets.append(fleet)
+        schedule(cfg, faults, fleet, *args)
+
+    def battery_low_at_start(self: Team, rng: np.random.Generator) -> list[Any]:
+        fleets[0].set_battery("cf3", 3.2)
+        return draw(self, rng)
+
+    monkeypatch.setattr(job, "_schedule", keep_fleet)
+    monkeypatch.setattr(Team, "draw", battery_low_at_start)
     doc = sim_doc(tmp_path, registry_member, horizon=150, backups=BACKUP["backups"], name=BACKUP["name"])
-    doc["faults"] = [{"kind": "low_battery", "drone": "cf3", "volts": 3.2, "at": 8.0}]
     result = fly_doc(tmp_path, doc)
     frame = ticks(result)
     assert not result.ended_early and result.episodes_flown == 1
@@ -212,6 +231,7 @@ def test_a_backup_takes_the_dropped_slot_at_a_pose_safe_spawn_on_a_busy_host(
     assert list(took.drone) == ["cf7"] and abs(float(took.t.iloc[0]) - change["took_slot_t"]) < 1e-6
     dropped = frame[frame.events.str.contains("dropped:battery")]  # the drop's row is its record's tick too
     assert list(dropped.drone) == ["cf3"] and abs(float(dropped.t.iloc[0]) - change["t"]) < 1e-6
+    assert int(dropped.step.iloc[0]) >= 0 and int(took.step.iloc[0]) > 0  # both in the episode: seated on arrival
     at = frame[frame.t == took.t.iloc[0]].set_index("drone")
     spot = at.loc["cf7", ["x", "y"]].to_numpy(np.float64)
     lo, hi = slot_box(2)
