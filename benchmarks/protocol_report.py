@@ -14,7 +14,8 @@ capture); in every seat assignment of the task with Zoo 3 (``--split-episodes`` 
 mean ± std (ddof 1) over the training seeds; the SUC a protocol costs (Zoo 3 alone minus the protocol), paired
 by seed, with a 95 % t-interval of seeds - 1 degrees of freedom; and per task and protocol, which method loses
 least, against each other method with the paired interval of the difference. Resumable: one JSON per (learner,
-task, seed) in ``<out>/cells/``. Writes ``<out>/report.md`` and ``report.json``.
+task, seed) in ``<out>/cells/``, so processes given different ``--seeds`` (or methods, tasks) can play side by
+side into one ``--out``. Writes ``<out>/report.md`` and ``report.json``.
 """
 
 from __future__ import annotations
@@ -201,6 +202,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", type=Path, default=Path("runs/benchmarks/paper_budget"), help="the grid's folder")
     parser.add_argument("--methods", nargs="*", default=["sp", "hola", "mappo", "naht_d"])
     parser.add_argument("--tasks", nargs="+", default=["4p2e1o", "4p2e5o"])
+    parser.add_argument("--seeds", nargs="*", type=int, default=None, help="only these training seeds (default: all)")
     parser.add_argument("--learner", action="append", default=[], help="LABEL=POLICY, played on every task")
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--split-episodes", type=int, default=100)
@@ -209,6 +211,8 @@ def main(argv: list[str] | None = None) -> None:
     learners: list[tuple[str, str, int, str]] = []
     if args.cells is not None:
         learners += grid_learners(args.cells, args.runs, args.methods, args.tasks)
+        if args.seeds is not None:  # one process per seed, side by side: each writes its own cells
+            learners = [learner for learner in learners if learner[2] in args.seeds]
     for item in args.learner:
         label, _, name = item.partition("=")
         learners += [(label, task, 0, name.format(task=task)) for task in args.tasks]
