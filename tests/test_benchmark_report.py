@@ -460,6 +460,10 @@ def test_the_time_left_counts_each_pending_cell_at_its_methods_median_wall_time(
     assert _progress_line(4, 2, 1, walls, pending).endswith("; about 7.5 min left")
     assert _progress_line(4, 1, 2, {"floor": [2.0]}, pending).endswith("; about 0.1 min left")  # floors alone
     assert _progress_line(0, 1, 2, {}, pending) == "cells: 0 done, 1 running, 2 left"  # nothing to go by yet
+    # a method whose one cell sat out a pause (hola, 6,000 s) counts at that, but a method none finished (pbt) at
+    # the median of the training methods' medians (sp 360, br 240, hola 6,000: 360 s), not at their mean (2,200 s)
+    pbt = [Cell("method", "pbt", "4p2e1o", 0)]
+    assert _progress_line(4, 1, 1, {**walls, "hola": [6000.0]}, pbt).endswith("; about 6.0 min left")
     # a resumed job starts from the cells finished before it: a record's every attempt, one without timing left out
     from atdrone.benchmark.job import finished_walls
 

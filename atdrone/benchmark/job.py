@@ -291,14 +291,14 @@ def _progress_line(
     done: int, running: int, left: int, walls: Mapping[str, Sequence[float]], pending: Sequence[Cell]
 ) -> str:
     """``cells: 3 done, 1 running, 6 left; about 4 min left``: each pending cell at the median wall time of its
-    method's finished cells (:func:`finished_walls`, then each finished here; a method none finished yet: the mean of
-    the training methods' medians), as many at once as run now. The median: a cell that ran across a pause or beside
+    method's finished cells (:func:`finished_walls`, then each finished here; a method none finished yet: the median
+    of the training methods' medians), as many at once as run now. The median: a cell that ran across a pause or beside
     other work would pull a mean far up."""
     line = f"cells: {done} done, {running} running, {left} left"
     typical = {m: statistics.median(ws) for m, ws in walls.items() if ws}  # a cell that sat out a pause is no guide
     if typical and pending:
         trained = [w for m, w in typical.items() if m != "floor"] or list(typical.values())  # floors train nothing
-        overall = sum(trained) / len(trained)
+        overall = statistics.median(trained)  # a method whose only cell sat out a pause pulls a mean far up
         total = sum(typical.get(c.method, overall) for c in pending)
         line += f"; about {total / max(1, running) / 60:.1f} min left"
     return line
