@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import platform
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,7 @@ def play(policy_name: str, task: str, seed: int, episodes: int, split_episodes: 
 
     learner = resolve(policy_name).policy()
     seeds = [EVAL_SEED + seed]
-    out: dict[str, Any] = {"policy": policy_name, "task": task, "seed": seed, "episodes": episodes}
+    out: dict[str, Any] = {"policy": policy_name, "task": task, "seed": seed, "episodes": episodes, "build": build()}
     out["protocols"] = {}
     for name in ("zoo3", *PROTOCOLS):
         result = evaluate(learner, task, "zoo3", episodes, seeds, protocol=None if name == "zoo3" else name)
@@ -60,6 +61,24 @@ def play(policy_name: str, task: str, seed: int, episodes: int, split_episodes: 
         result = evaluate(learner, size, "zoo1", episodes, seeds, cross_task=True)
         out["sizes"][Path(size).stem] = {k: result.mean[k] for k in ("SUC", "COL")}
     return out
+
+
+def build() -> str:
+    """The build that plays the episodes: another one plays them slightly differently (docs/evaluation.md)."""
+    import torch
+
+    return f"python {platform.python_version()}, numpy {np.__version__}, torch {torch.__version__}"
+
+
+def builds_line(cells: list[dict[str, Any]]) -> str:
+    """One sentence naming the build(s) the cells were played with; more than one is a warning."""
+    found = sorted({str(c.get("build", "not recorded")) for c in cells})
+    if len(found) == 1:
+        return f"Every cell was played with {found[0]}."
+    return (
+        f"**The cells come from {len(found)} builds** ({'; '.join(found)}): their numbers differ slightly "
+        "from build to build, so compare learners played on one."
+    )
 
 
 def grid_learners(cells: Path, runs: Path, methods: list[str], tasks: list[str]) -> list[tuple[str, str, int, str]]:
@@ -89,7 +108,7 @@ def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
     groups: dict[tuple[str, str], dict[int, dict[str, Any]]] = {}
     for c in cells:
         groups.setdefault((c["learner"], c["task"]), {})[c["seed"]] = c
-    out: dict[str, Any] = {"learners": {}, "least_loss": {}}
+    out: dict[str, Any] = {"learners": {}, "least_loss": {}, "builds": builds_line(cells)}
     loss: dict[tuple[str, str, str], dict[int, float]] = {}
     for (label, task), by_seed in sorted(groups.items()):
         seeds = sorted(by_seed)
@@ -127,13 +146,14 @@ def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
 
 def markdown(summary: dict[str, Any], episodes: int, split_episodes: int) -> str:
     rows = summary["learners"]
+    played_with = summary.get("builds", "")
     lines = [
         "# Open teaming",
         "",
         f"Each learner with Zoo 3 alone and with its team-event protocols ({episodes} episodes each, evaluation "
         "seed 10,000 + the training seed); mean ± std (ddof 1) over the training seeds. SUC after: over the "
         "episodes that reached their first event. REC: steps from the event to the next capture. Re-run: "
-        "`python benchmarks/protocol_report.py` (see its docstring).",
+        "`python benchmarks/protocol_report.py` (see its docstring). " + played_with,
         "",
         "| learner | task | seeds | "
         + " | ".join(f"SUC {p}" for p in ("zoo3", *PROTOCOLS))

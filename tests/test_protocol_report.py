@@ -52,3 +52,13 @@ def test_the_cost_of_a_change_is_paired_by_seed_and_the_least_loss_needs_an_inte
     assert diff[2] - diff[0] == pytest.approx(4.3027 * 4.5092 / 3**0.5, abs=1e-3)
     md = report_mod.markdown(summary, 500, 100)
     assert "| 4p2e5o | zoo3+drop | B | A: -8.7" in md
+
+
+def test_the_report_names_the_build_its_cells_were_played_with_and_warns_when_they_mix(report_mod):
+    one = [{**_cell("A", s, 60.0, 50.0), "build": "python 3.12.3, numpy 2.3.5, torch 2.13.0"} for s in (0, 1)]
+    md = report_mod.markdown(report_mod.summarise(one), 500, 100)
+    assert "Every cell was played with python 3.12.3, numpy 2.3.5, torch 2.13.0." in md
+    mixed = [*one, {**_cell("A", 2, 60.0, 50.0), "build": "python 3.11.9, numpy 2.5.2, torch 2.11.0"}]
+    md = report_mod.markdown(report_mod.summarise(mixed), 500, 100)
+    assert "**The cells come from 2 builds**" in md and "numpy 2.5.2" in md
+    assert "Every cell" not in md
