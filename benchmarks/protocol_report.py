@@ -6,16 +6,17 @@ Usage, on the final learners of a benchmark grid (each training seed's own learn
         --runs runs/benchmarks/paper_budget --methods sp hola mappo naht_d --tasks 4p2e1o 4p2e5o
 
 ``--learner LABEL=POLICY`` adds a learner by any name ``atdrone evaluate`` takes (``{task}`` in it is the task),
-reported as one seed. Each learner is played (its evaluation seed: the benchmark's, 10,000 + its training seed,
-so every method meets the same episodes) with Zoo 3 alone and with zoo3+swap, zoo3+drop and zoo3+drop+join
+reported as one seed. Each learner is played (its evaluation seed: the benchmark's, 10,000 + its training seed, so
+every method meets the same episodes) with Zoo 3 alone and with zoo3+swap, zoo3+drop and zoo3+drop+join
 (``--episodes`` each): SUC, SUC after the event and the recovery time REC (steps from the event to the next
-capture); in every seat assignment of the task with Zoo 3 (``--split-episodes`` per assignment); and in teams of
-3, 5 and 6 pursuers with Zoo 1 (``--episodes`` each, the learner as a cross-task player). Per method and task:
-mean ± std (ddof 1) over the training seeds; the SUC a protocol costs (Zoo 3 alone minus the protocol), paired
-by seed, with a 95 % t-interval of seeds - 1 degrees of freedom; and per task and protocol, which method loses
-least, against each other method with the paired interval of the difference. Resumable: one JSON per (learner,
-task, seed) in ``<out>/cells/``, so processes given different ``--seeds`` (or methods, tasks) can play side by
-side into one ``--out``. Writes ``<out>/report.md`` and ``report.json``.
+capture); in every seat assignment of the task with Zoo 3 (``--split-episodes`` per assignment); and in teams of 3,
+4, 5 and 6 pursuers (2 evaders, 1 obstacle) with Zoo 1 (``--episodes`` each, the learner as a cross-task player).
+Per method and task: mean ± std (ddof 1) over the training seeds; the SUC a protocol costs (Zoo 3 alone minus the
+protocol), paired by seed, with a 95 % t-interval of seeds - 1 degrees of freedom; and per task and protocol, which
+method loses least, against each other method with the paired interval of the difference. Resumable: one JSON per
+(learner, task, seed) in ``<out>/cells/``, so processes given different ``--seeds`` (or methods, tasks) can play
+side by side into one ``--out``. Each cell names the build (python, numpy, torch) that played it, and the report
+warns when its cells come from more than one. Writes ``<out>/report.md`` and ``report.json``.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from atdrone.benchmark.stats import t_interval as paired_t
 from atdrone.fileio import atomic_write_text
 
 PROTOCOLS = ("zoo3+swap", "zoo3+drop", "zoo3+drop+join")
-SIZES = ("configs/tasks/3p2e1o.json", "configs/tasks/5p2e1o.json", "configs/tasks/6p2e1o.json")
+SIZES = tuple(f"configs/tasks/{n}p2e1o.json" for n in (3, 4, 5, 6))  # 4: the paper's size, for comparison
 WANTED = ("SUC", "COL", "EVT", "SUC_pre", "SUC_post", "COL_post", "REC", "REC_none")
 EVAL_SEED = 10_000  # the benchmark's: a learner of training seed s plays the episodes of seed EVAL_SEED + s
 
