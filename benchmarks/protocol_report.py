@@ -103,6 +103,14 @@ def _ci(found: tuple[float, float, float] | None) -> str:
     return "-" if found is None else f"{found[0]:+.1f} [{found[1]:+.1f}, {found[2]:+.1f}]"
 
 
+def _mean_ci(values: list[float]) -> str:
+    """``mean [low, high]``: the 95 % t-interval of the mean over seeds; ``over_seeds`` under two values."""
+    found = paired_t(values)
+    if found["n"] < 2:
+        return over_seeds(values)
+    return f"{found['diff']:.1f} [{found['ci95'][0]:.1f}, {found['ci95'][1]:.1f}]"
+
+
 def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
     """Per (learner, task): seeds, protocol SUC/REC over seeds, the SUC each protocol costs (paired), splits,
     sizes; per (task, protocol): the method that loses least and its paired comparisons."""
@@ -168,6 +176,24 @@ def markdown(summary: dict[str, Any], episodes: int, split_episodes: int) -> str
         suc = [over_seeds(r["protocols"][p]["SUC"]) for p in ("zoo3", *PROTOCOLS)]
         rec = [over_seeds(r["protocols"][p]["REC"]) for p in PROTOCOLS]
         lines.append(f"| {label} | {task} | {len(r['seeds'])} | " + " | ".join(suc + rec) + " |")
+    lines += [
+        "",
+        "## Means with their intervals",
+        "",
+        "The same learners: mean over the training seeds [95 % t-interval, seeds - 1 degrees of freedom]. SUC after "
+        "the event and REC per protocol.",
+        "",
+        "| learner | task | "
+        + " | ".join(f"SUC after {p}" for p in PROTOCOLS)
+        + " | "
+        + " | ".join(f"REC {p}" for p in PROTOCOLS)
+        + " |",
+        "|" + " --- |" * (2 + 2 * len(PROTOCOLS)),
+    ]
+    for key, r in rows.items():
+        label, task = key.split("|")
+        cells = [_mean_ci(r["protocols"][p][m]) for m in ("SUC_post", "REC") for p in PROTOCOLS]
+        lines.append(f"| {label} | {task} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "## What a team change costs",

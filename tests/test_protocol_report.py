@@ -52,6 +52,8 @@ def test_the_cost_of_a_change_is_paired_by_seed_and_the_least_loss_needs_an_inte
     assert diff[2] - diff[0] == pytest.approx(4.3027 * 4.5092 / 3**0.5, abs=1e-3)
     md = report_mod.markdown(summary, 500, 100)
     assert "| 4p2e5o | zoo3+drop | B | A: -8.7" in md
+    # A's SUC after the event: 50, 49, 51 (mean 50, sd 1, half-width 2.4841); REC 40 on every seed
+    assert "| A | 4p2e5o | 50.0 [47.5, 52.5] | 50.0 [47.5, 52.5] | 50.0 [47.5, 52.5] | 40.0 [40.0, 40.0] |" in md
 
 
 def test_the_report_names_the_build_its_cells_were_played_with_and_warns_when_they_mix(report_mod):
