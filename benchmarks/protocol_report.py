@@ -105,10 +105,8 @@ def _ci(found: tuple[float, float, float] | None) -> str:
 
 def _mean_ci(values: list[float]) -> str:
     """``mean [low, high]``: the 95 % t-interval of the mean over seeds; ``over_seeds`` under two values."""
-    found = paired_t(values)
-    if found["n"] < 2:
-        return over_seeds(values)
-    return f"{found['diff']:.1f} [{found['ci95'][0]:.1f}, {found['ci95'][1]:.1f}]"
+    found = t_interval(values)
+    return over_seeds(values) if found is None else f"{found[0]:.1f} [{found[1]:.1f}, {found[2]:.1f}]"
 
 
 def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
