@@ -64,3 +64,20 @@ def test_the_report_names_the_build_its_cells_were_played_with_and_warns_when_th
     md = report_mod.markdown(report_mod.summarise(mixed), 500, 100)
     assert "**The cells come from 2 builds**" in md and "numpy 2.5.2" in md
     assert "Every cell" not in md
+
+
+def test_one_learner_on_two_builds_is_compared_number_by_number(load_script):
+    cross = load_script(ROOT / "benchmarks" / "protocol_cross_build.py")
+    a = {"policy": "p", "task": "4p2e5o", "seed": 0, "episodes": 500, "build": "one", **_cell("sp", 0, 60.0, 50.0)}
+    b = {**a, "build": "two", "protocols": {k: dict(v) for k, v in a["protocols"].items()}}
+    b["protocols"]["zoo3+drop"]["SUC"] = 52.5  # only this SUC moves: +2.5, so the drop costs 7.5 on B
+    b["sizes"] = {"6p2e1o": {"SUC": 29.0}}  # and a size: -1.0
+    found = cross.compare(a, b)
+    assert found["builds"] == {"A": "one", "B": "two"}
+    # SUC numbers: 4 protocols, 1 split, 1 size; mean of (0, 0, +2.5, 0, 0, -1) = 0.25
+    assert found["SUC_difference"] == {"numbers": 6, "mean": 0.25, "max_abs": 2.5, "unchanged": 4}
+    assert found["protocol_cost"]["A"] == {"zoo3+swap": 10.0, "zoo3+drop": 10.0, "zoo3+drop+join": 10.0}
+    assert found["protocol_cost"]["B"]["zoo3+drop"] == 7.5
+    assert found["metrics"]["protocols/zoo3+drop/SUC"] == {"A": 50.0, "B": 52.5, "B-A": 2.5}
+    with pytest.raises(SystemExit, match="seed"):
+        cross.compare(a, {**b, "seed": 1})
