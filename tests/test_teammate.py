@@ -283,3 +283,33 @@ def test_zoo4_is_held_out_and_not_made_by_the_zoo2_recipe():
     vicsek = [m for m in zoo4.spec.members if m.kind == "vicsek"]
     assert len(vicsek) == 3 and all(m.params for m in vicsek)  # none is Zoo 3's default VICSEK drone
     assert sum(m.params.get("noise", 0.0) > 0 for m in vicsek) == 2  # two noisy ones
+
+
+def test_the_encoder_reads_the_nearest_teammates_in_range_of_a_bigger_team_and_masks_a_smaller_ones_gaps():
+    from atdrone.models.teammate import fit_blocks
+
+    # 2 frames (newest first) x 5 teammates x [mask, distance / 5, sin, cos]; feature 2 names the teammate
+    blocks = torch.zeros(1, 2, 5, 4)
+    blocks[..., 2] = torch.arange(5.0)
+    blocks[0, 0, :, 0] = torch.tensor([1.0, 0.0, 1.0, 1.0, 1.0])  # teammate 1 beyond range now
+    blocks[0, 0, :, 1] = torch.tensor([0.16, 0.01, 0.04, 0.10, 0.18])  # in range, nearest first: 2, 3, 0, 4
+    blocks[0, 1, :, 0] = 1.0
+    blocks[0, 1, :, 1] = torch.tensor([0.5, 0.0, 0.5, 0.5, 0.01])  # the past frame does not choose
+    three = fit_blocks(blocks, 3)
+    assert three.shape == (1, 2, 3, 4)
+    assert three[0, :, :, 2].tolist() == [[0.0, 2.0, 3.0], [0.0, 2.0, 3.0]]  # index order, every frame
+    assert torch.equal(fit_blocks(blocks, 5), blocks)
+    seven = fit_blocks(blocks, 7)
+    assert torch.equal(seven[..., :5, :], blocks) and not seven[..., 5:, :].any()  # masked: all zeros
+
+
+@pytest.mark.parametrize("task", ["configs/tasks/3p2e1o.json", "configs/tasks/6p2e1o.json"])
+def test_a_naht_d_network_built_for_four_pursuers_flies_in_a_team_of_another_size(task):
+    from atdrone.policies.neural import NeuralPolicy
+    from atdrone.teams.evaluation import evaluate
+
+    torch.manual_seed(0)
+    model = TeammateActorCritic(TeammateConfig(entity_dim=16, hidden=32))
+    policy = NeuralPolicy(model, name="naht-4p", task="4p2e1o")
+    result = evaluate(policy, task, "zoo1", episodes=2, cross_task=True)
+    assert len(result.records) == 2 and result.task == task.split("/")[-1].removesuffix(".json")

@@ -18,8 +18,12 @@ observation's slot order; :meth:`TeammateActorCritic.decoder_loss` scores it aga
 what the teammates did (see that method). ``detach_embedding`` keeps the policy and
 value losses out of the encoder (it then learns from the decoder alone, as POAM does).
 
-Streams keep every entity (no pooling), so the encoder needs the task shape
-(``num_p``, ``num_e``) in its config: a NAHT-D network flies its own task's team size.
+Streams keep every entity (no pooling), so the encoder is built for the task shape
+(``num_p``, ``num_e``) of its config. In a team of another size (the trunks pool, so the
+actor and critic read any size) the encoder reads the entities it was built for: with
+fewer, the missing blocks are masked, as an entity beyond reception range is; with more,
+it reads the nearest in range at the current step (in index order), the same ones in
+every past frame.
 """
 
 from __future__ import annotations
@@ -110,21 +114,47 @@ class TeammateEncoder(nn.Module):
         """The weighted average's weights over (evaders, own state, teammates)."""
         return torch.softmax(self.stream_logits, 0)
 
-    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
-        cfg, D, h = self.cfg, self.cfg.obs_dim, self.cfg.history
+    def forward(self, inputs: torch.Tensor, num_e: int | None = None) -> torch.Tensor:
+        """The embedding of inputs (..., input width) of a team with ``num_e`` evaders (default: the config's)."""
+        cfg, h = self.cfg, self.cfg.history
+        D = obs_width(inputs, h)
+        E = cfg.num_e if num_e is None else num_e
         lead = inputs.shape[:-1]
-        frames = inputs[..., : D * (h + 1)].reshape(*lead, h + 1, cfg.num_e + cfg.num_p, ENTITY_FEATURES)
+        frames = inputs[..., : D * (h + 1)].reshape(*lead, h + 1, D // ENTITY_FEATURES, ENTITY_FEATURES)
         past_actions = inputs[..., D * (h + 1) :]
-        E = cfg.num_e
         streams = torch.stack(
             [
-                self.evaders(frames[..., :E, :].reshape(*lead, -1)),
+                self.evaders(fit_blocks(frames[..., :E, :], cfg.num_e).reshape(*lead, -1)),
                 self.own(torch.cat([frames[..., E, :].reshape(*lead, -1), past_actions], -1)),
-                self.mates(frames[..., E + 1 :, :].reshape(*lead, -1)),
+                self.mates(fit_blocks(frames[..., E + 1 :, :], cfg.num_p - 1).reshape(*lead, -1)),
             ],
             -1,
         )
         return (streams * self.weights()).sum(-1)
+
+
+def obs_width(inputs: torch.Tensor, history: int) -> int:
+    """The observation width D of network inputs (..., (history + 1) * D + history)."""
+    D, rest = divmod(inputs.shape[-1] - history, history + 1)
+    if rest or D <= 0 or D % ENTITY_FEATURES:
+        raise ValueError(f"inputs of width {inputs.shape[-1]} are not {history + 1} observation frames and actions")
+    return D
+
+
+def fit_blocks(blocks: torch.Tensor, n: int) -> torch.Tensor:
+    """Entity blocks (..., frames, m, F), newest frame first, as n blocks: masked ones added when m < n; when
+    m > n, the n nearest in range in the newest frame (masked ones last, index order kept), in every frame."""
+    m = blocks.shape[-2]
+    if m == n:
+        return blocks
+    if m < n:
+        pad = blocks.new_zeros(*blocks.shape[:-2], n - m, blocks.shape[-1])
+        return torch.cat([blocks, pad], -2)
+    newest = blocks[..., 0, :, :]
+    distance = torch.where(newest[..., 0] > 0, newest[..., 1], torch.full_like(newest[..., 1], math.inf))
+    order = torch.sort(torch.sort(distance, stable=True, dim=-1).indices[..., :n], -1).values  # (..., n), index order
+    index = order[..., None, :, None].expand(*blocks.shape[:-2], n, blocks.shape[-1])
+    return torch.gather(blocks, -2, index)
 
 
 class TeammateActorCritic(nn.Module):
@@ -182,14 +212,14 @@ class TeammateActorCritic(nn.Module):
         params = list(self.parameters())
         return [p for p in params if id(p) not in critic], [p for p in params if id(p) in critic]
 
-    def embedding(self, inputs: torch.Tensor, for_policy: bool = True) -> torch.Tensor:
+    def embedding(self, inputs: torch.Tensor, for_policy: bool = True, num_e: int | None = None) -> torch.Tensor:
         """The teammate embedding (..., embed_dim); detached for the policy when ``detach_embedding``."""
-        z = self.encoder(inputs)
+        z = self.encoder(inputs, num_e)
         return z.detach() if for_policy and self.cfg.detach_embedding else z
 
     def dist(self, inputs: torch.Tensor, num_e: int) -> torch.distributions.Normal:
-        obs = inputs[..., : self.cfg.obs_dim]
-        mu = self.mu(self.actor(obs, num_e, self.embedding(inputs))).squeeze(-1)
+        obs = inputs[..., : obs_width(inputs, self.cfg.history)]
+        mu = self.mu(self.actor(obs, num_e, self.embedding(inputs, num_e=num_e))).squeeze(-1)
         return torch.distributions.Normal(mu, self.log_std.exp().expand_as(mu))
 
     def value(
@@ -199,8 +229,8 @@ class TeammateActorCritic(nn.Module):
             raise ValueError("the centralised critic needs the global state")
         extra = [self.global_encoder(state, num_p or self.cfg.num_p)]
         if self.cfg.critic_embedding:
-            extra.append(self.embedding(inputs))
-        obs = inputs[..., : self.cfg.obs_dim]
+            extra.append(self.embedding(inputs, num_e=num_e))
+        obs = inputs[..., : obs_width(inputs, self.cfg.history)]
         return self.value_head(self.critic(obs, num_e, torch.cat(extra, -1))).squeeze(-1)
 
     def decode(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
