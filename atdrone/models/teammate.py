@@ -93,10 +93,6 @@ class TeammateConfig:
             history=0,
         )
 
-    @property
-    def obs_dim(self) -> int:
-        return ENTITY_FEATURES * (self.num_p + self.num_e)
-
 
 class TeammateEncoder(nn.Module):
     """Three streams of the last k + 1 frames -> one embedding (learned weighted average)."""
