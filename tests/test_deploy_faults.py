@@ -11,8 +11,11 @@ flight log and what the simulated firmware saw; the helpers are in tests/flight_
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import signal
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,7 +38,7 @@ from flight_helpers import (  # noqa: F401  (the fixtures)
 from atdrone.cli import main as cli_main
 from atdrone.deploy.config import load_deploy
 from atdrone.deploy.job import run_deploy
-from atdrone.deploy.loop import StopRequest
+from atdrone.deploy.loop import Flight, StopRequest
 
 
 # ---------------------------------------------------------------- faults
@@ -104,6 +107,37 @@ def test_every_drone_lands_softly_after_a_fault_on_a_busy_host(
         first = frame[frame.step >= 0].t.min()
         late = frame[frame.events.str.contains("policy_late")]
         assert len(late) and late.t.min() - first < 0.5
+
+
+def test_host_pauses_while_the_loop_sleeps_are_ridden_out(
+    tmp_path: Path, registry_member: tuple[str, str], busy_host: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """From takeoff on, ten SIGSTOPs of the ground station from outside, 0.2 wall s each (0.4 s of the drones'
+    clock: past the 0.3 s stale-pose limit, under the firmware's watchdogs), at phases unrelated to the loop's
+    ticks, so most land while the loop sleeps: each is a host pause, not stale poses of every drone nor lost
+    links, and the episode is flown to its end."""
+    pid, pausers = os.getpid(), []
+    code = "import os, signal, time\nfor k in range(10):\n"
+    code += f"    time.sleep(0.4 + 0.013 * k); os.kill({pid}, signal.SIGSTOP); time.sleep(0.2); "
+    code += f"os.kill({pid}, signal.SIGCONT)\n"
+    takeoff = Flight._takeoff
+
+    def pausing_takeoff(flight: Flight) -> None:
+        pausers.append(subprocess.Popen([sys.executable, "-S", "-c", code]))
+        takeoff(flight)
+
+    monkeypatch.setattr(Flight, "_takeoff", pausing_takeoff)
+    try:
+        result = fly(tmp_path, registry_member, horizon=60)
+    finally:
+        for pauser in pausers:
+            pauser.kill()
+            pauser.wait()
+        os.kill(pid, signal.SIGCONT)  # never left stopped
+    frame = ticks(result)
+    assert not result.ended_early and result.episodes_flown == 1
+    assert frame.groupby("t").events.apply(lambda e: e.str.contains("host_pause").any()).sum() >= 5
+    landed_softly(result)
 
 
 def test_a_link_lost_for_good_gets_land_commands_until_the_end_and_is_reported_lost(

@@ -6,8 +6,10 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+import pytest
 
 from atdrone.deploy import crtp
+from atdrone.deploy.clock import Ticker
 from atdrone.deploy.landing import RECENT, confirmed_down, cut_by_firmware
 from atdrone.deploy.links import LinkHealth
 from atdrone.deploy.reactions import LANDING_COLUMN, Reaction, Verdict, spare_landing, verdict
@@ -70,6 +72,37 @@ def test_a_host_pause_is_not_silence_and_one_quiet_link_is_a_lost_drone() -> Non
     # a blocked sender reaches nobody either
     view = links.update({"a": 0.0, "b": 0.0, "c": 0.0}, sender_age=0.9)
     assert view.all_silent == 0.9
+
+
+class OversleepingClock:
+    """A clock whose next sleep lasts ``extra`` seconds longer than asked (the process stopped while asleep)."""
+
+    rate = 1.0
+
+    def __init__(self) -> None:
+        self.t, self.extra = 0.0, 0.0
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += max(seconds, 0.0) + self.extra
+        self.extra = 0.0
+
+    def sleep_until(self, t: float) -> None:
+        self.sleep(t - self.t)
+
+
+def test_a_tick_that_wakes_late_reports_how_late() -> None:
+    """A pause while the loop sleeps shows only on waking: the tick says it is 0.35 s late (a host pause, counted
+    once), and the schedule restarts from the moment it woke, so the next tick is on time."""
+    clock = OversleepingClock()
+    ticks = Ticker(clock, 0.1)
+    assert ticks.wait() == 0.0 and ticks.late_by == 0.0
+    clock.extra = 0.35
+    assert ticks.wait() == pytest.approx(0.45) and ticks.late_by == pytest.approx(0.35) and ticks.overruns == 1
+    assert LinkHealth(NAMES, rate=1.0, timeout=0.5).host_paused(ticks.late_by, 0.1)
+    assert ticks.wait() == pytest.approx(0.55) and ticks.late_by == 0.0 and ticks.overruns == 1
 
 
 def test_every_link_silent_holds_then_lands_all_and_marks_nobody_lost() -> None:

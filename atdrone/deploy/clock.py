@@ -66,7 +66,7 @@ class Ticker:
         self.clock, self.period = clock, period
         self.next = clock.now()
         self.overruns = 0
-        self.late_by = 0.0  # clock seconds the last tick started after its scheduled time (a host pause)
+        self.late_by = 0.0  # clock seconds the last tick was called or woke after its scheduled time (a host pause)
         self._lock = threading.Lock()
 
     def wait(self) -> float:
@@ -79,6 +79,12 @@ class Ticker:
                 self.overruns += 1
                 self.next = now
             self.clock.sleep_until(self.next)
+            # a pause while asleep (the host descheduled or stopped the process) shows only on waking
+            woke = self.clock.now()
+            self.late_by = max(self.late_by, woke - self.next)
+            if woke > self.next + self.period:
+                self.overruns += 1
+                self.next = woke
             t = self.next
             self.next += self.period
             return t

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import gc
+import math
 import sys
 from collections import deque
 from collections.abc import Callable
@@ -154,6 +155,7 @@ class Flight(Episodes):
         self.off_since = np.full(D, np.inf)  # clock time each drone's onboard estimate left its pose (inf: it agrees)
         self.grow = np.zeros(D)  # m each drone's separation ellipsoid was grown by last tick (no valid pose)
         self.tick_t = self.t0
+        self._pause_caught = -math.inf  # the tick whose host pause was last counted
         self._init_backups()
 
     # ------------------------------------------------------------------ poses
@@ -164,7 +166,7 @@ class Flight(Episodes):
         pos = np.full((len(self.names), 3), np.nan)
         yaw = np.full(len(self.names), np.nan)
         age = np.full(len(self.names), np.inf)
-        grace = (self.link_health.wall() - self.link_health.resumed) * self.clock.rate  # since a host pause
+        grace = self._grace()
         for i, name in enumerate(self.names):
             pose = latest.get(self.bodies[name])
             if pose is None:
@@ -174,8 +176,20 @@ class Flight(Episodes):
             # drone sways by millimetres, the cameras' noise is tenths of one): frames arrive, the pose is as old
             if pose.still >= FROZEN_FRAMES and self.state[name] in AIRBORNE:
                 age[i] = max(age[i], now - pose.moved_t)
-            age[i] = min(age[i], max(grace, 0.0))
+            age[i] = min(age[i], grace)
         return pos, yaw, age
+
+    def _grace(self) -> float:
+        """Clock seconds since the loop last resumed from a host pause: no pose or link is older than that."""
+        return max((self.link_health.wall() - self.link_health.resumed) * self.clock.rate, 0.0)
+
+    def _catch_pause(self) -> None:
+        """A host pause inside this tick (after its wake-up, before its shield: the tick is now more than a period
+        past its time) counts as one, as a late wake-up does: ages count again from now. Once per tick."""
+        late = self.clock.now() - self.tick_t
+        if self._pause_caught != self.tick_t and self.link_health.host_paused(late, self.dt):
+            self._pause_caught = self.tick_t
+            self.notes.setdefault("", []).append("host_pause")
 
     def observations(
         self, pos_p: np.ndarray, heading: np.ndarray, pos_e: np.ndarray, captured: np.ndarray
@@ -236,7 +250,7 @@ class Flight(Episodes):
                     self.clock.sleep(self.dt)
                 self.aborted = self.aborted or f"{type(exc).__name__}: {exc}"
             pos, yaw, age = self.measured()  # the last row: where every drone ended, in its final state
-            self._log_tick(self.clock.now(), -1, pos, yaw, self._shield(pos, age, pos), {}, None)
+            self._log_tick(self.clock.now(), -1, pos, yaw, self._shield(pos, age, pos, in_tick=False), {}, None)
             self.ended = self.endings()
             self.bridge.stop_heartbeat()
             self.policy.close()
@@ -269,6 +283,7 @@ class Flight(Episodes):
         self.tick_t = tick  # the tick's clock time, for what happens in it (the log's rows carry it)
         self.bridge.beat()
         if self.link_health.host_paused(self.ticks.late_by, self.dt):
+            self._pause_caught = tick
             self.notes.setdefault("", []).append("host_pause")
         for drone, note in self.faults.fire(tick - self.t0):
             for n in [drone] if drone else self.names:
@@ -289,7 +304,11 @@ class Flight(Episodes):
         setpoints: np.ndarray,
         vel: np.ndarray | None = None,
         policy_late: float = 0.0,
+        in_tick: bool = True,
     ) -> ShieldDecision:
+        if in_tick:  # a pause since the poses were measured must not read as stale poses or silent links
+            self._catch_pause()
+            age = np.minimum(age, self._grace())
         battery = self.bridge.battery()
         self.links = self.link_health.update(self.bridge.link_age(), self.bridge.sender_age())
         bits = self.bridge.supervisor()
