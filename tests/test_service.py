@@ -11,6 +11,7 @@ import json
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -330,10 +331,22 @@ class FixedPartners(Algorithm):
 def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path, monkeypatch, mlflow_store):
     """A test's own algorithm runs in the service. Its final zoo is a protocol of team events, "zoo3+drop": the
     population is played with zoo3's drones and the drop of every episode, and the population table, the registry
-    and MLflow carry the events' metrics (MLflow's keys with ``+`` as ``_``)."""
+    and MLflow carry the events' metrics (MLflow's keys with ``+`` as ``_``). It trains with a protocol that draws
+    the split of the team, one of its two learner slots in every episode: its updates use half of the learner
+    drone-steps, and each member's registry tags and the MLflow run record the protocol."""
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray ships this module's classes by value
     monkeypatch.setitem(ALGORITHMS, "fixed", FixedPartners)
-    cfg = _cfg(tmp_path, "fixed_t", algorithm="fixed", generations=2, fixed={"member": "greedy"}, final_zoo="zoo3+drop")
+    split = {"name": "one-of-two", "zoo": "zoo3", "learners": [1, 1]}
+    (tmp_path / "split.json").write_text(json.dumps(split))
+    cfg = _cfg(
+        tmp_path,
+        "fixed_t",
+        algorithm="fixed",
+        generations=2,
+        fixed={"member": "greedy"},
+        final_zoo="zoo3+drop",
+        protocol=str(tmp_path / "split.json"),
+    )
     assert cfg.algorithm_config() == FixedPartnersConfig(member="greedy")
     uri = mlflow_store(tmp_path / "mlflow.db")
     summary = run_experiment(cfg, tracking_uri=uri, progress=False)
@@ -344,8 +357,10 @@ def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path
         (trained,) = report.training
         assert trained.partners == {"kind": "FixedList", "members": ["zoo1:greedy"]}
         assert set(trained.drawn) == {"zoo1:greedy|zoo1:greedy"}  # what the rollout drew, per episode
+        assert trained.samples == trained.env_steps  # 1 of the 2 learner slots trained on, every episode
     members = Registry(tmp_path / "fixed_t" / "registry.db").members(run="fixed_t")
     assert list(members["algorithm"]) == ["fixed", "fixed"]
+    assert all(tags["protocol"] == {**split, "description": "", "events": []} for tags in members["tags"])
     population = pd.read_csv(tmp_path / "fixed_t" / "population.csv")
     assert {"zoo3+drop_SUC", "zoo3+drop_EVT", "zoo3+drop_SUC_post", "zoo3+drop_REC"} <= set(population.columns)
     assert population["zoo3+drop_EVT"].max() > 0  # episodes lived to their drop: the events were played
@@ -355,5 +370,14 @@ def test_an_algorithm_defined_in_a_test_plugs_into_the_table(local_ray, tmp_path
         k for r in client.search_runs([client.get_experiment_by_name("fixed_t").experiment_id]) for k in r.data.metrics
     }
     assert any(k.startswith("zoo3_drop_") for k in keys), sorted(keys)
+    (run,) = [
+        r
+        for r in client.search_runs([client.get_experiment_by_name("fixed_t").experiment_id])
+        if not r.data.tags.get("mlflow.parentRunId")
+    ]
+    assert run.data.tags["atdrone.protocol"] == "one-of-two"
+    assert json.loads(Path(client.download_artifacts(run.info.run_id, "protocol.json", str(tmp_path))).read_text())[
+        "learners"
+    ] == [1, 1]
     with pytest.raises(ConfigError, match=r"fixed\.colour"):
         _cfg(tmp_path, "fixed_bad", algorithm="fixed", fixed={"colour": "red"})

@@ -265,11 +265,15 @@ def _check(cfg: BenchmarkConfig) -> None:
 
 def _check_protocol(name: str, path: str, tasks: Sequence[str]) -> None:
     """ConfigError at ``path`` unless ``name`` is a protocol whose zoo every task can play."""
-    from atdrone.teams.protocols import is_protocol, load_protocol
+    from atdrone.teams.protocols import evaluation_protocol, is_protocol
 
     if not is_protocol(name):
         raise ConfigError(path, f"{name!r} is not a protocol of team events (configs/protocols, or a JSON path)")
-    _check_zoo(load_protocol(name).zoo, path, tasks)
+    try:
+        protocol = evaluation_protocol(name)
+    except ConfigError as exc:
+        raise ConfigError(path, str(exc)) from None
+    _check_zoo(protocol.zoo, path, tasks)
 
 
 def _check_zoo(zoo: str, path: str, tasks: Sequence[str]) -> None:

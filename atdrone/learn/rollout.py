@@ -11,7 +11,10 @@ partners actually executed); every finished episode names its partners, and the
 profiles drawn for the episodes started are counted (:attr:`RolloutWorker.drawn`), so
 what was drawn is what is reported. With team events (``events``, a protocol's plan)
 every episode draws its swaps, drops and joins, and a learner drone an event replaces
-starts with an empty memory.
+starts with an empty memory. With a ``split`` (a protocol's ``learners`` range) every
+episode draws how many of its slots the learner flies; partners fly the others
+(:class:`~atdrone.teams.match.Match`), and those drone-steps are left out of the
+update (``Fragment.own``).
 """
 
 from __future__ import annotations
@@ -60,11 +63,12 @@ class Fragment:
     episodes: list[dict[str, Any]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    own: np.ndarray | None = None  # (T, B, k) bool: the learner flew the slot (None: everywhere); else not trained on
 
     @property
     def samples(self) -> int:
-        """Learner drone-steps in the fragment."""
-        return int(np.prod(self.u.shape))
+        """Learner drone-steps in the fragment (that the learner flew)."""
+        return int(np.prod(self.u.shape)) if self.own is None else int(self.own.sum())
 
     def batch(self, gamma: float, lam: float, extras: bool = False) -> dict[str, np.ndarray]:
         """Flat PPO batch (N = T * B * k) with advantages and returns.
@@ -90,6 +94,9 @@ class Fragment:
         for name, value in per_env.items():
             wide = np.broadcast_to(value[:, :, None], (T, B, k, *value.shape[2:]))
             out[name] = wide.reshape(T * B * k, *value.shape[2:])
+        if self.own is not None:  # advantages above ran over every slot; the slots partners flew are dropped here
+            keep = self.own.reshape(-1)
+            out = {name: value[keep] for name, value in out.items()}
         return out
 
 
@@ -111,6 +118,7 @@ def concat_fragments(fragments: Sequence[Fragment]) -> Fragment:
         episodes=[e for f in fragments for e in f.episodes],
         timings={k: sum(f.timings.get(k, 0.0) for f in fragments) for k in fragments[0].timings},
         extras={k: np.concatenate([f.extras[k] for f in fragments], 1) for k in fragments[0].extras},
+        own=None if fragments[0].own is None else cat("own", 1),
     )
 
 
@@ -157,6 +165,7 @@ class RolloutWorker:
         sampler: PartnerSampler | None = None,
         num_envs: int | None = None,
         events: EventPlan | None = None,
+        split: tuple[int, int] | None = None,
     ) -> None:
         B = ppo.num_envs if num_envs is None else num_envs
         self.core = BatchedPursuit(task, num_envs=B, seed=seed, events=events)
@@ -168,7 +177,9 @@ class RolloutWorker:
             self.model, LEARNER_COPY, False, seed + 3, self.core.num_p, self.core.num_e
         )  # flies partner slots given as None, sampling the current weights
         policies = [copy if p is None else p for p in partners]
-        self.match = Match(self.core, policies, seed=seed + 1, num_ctrl=num_ctrl, sampler=sampler)
+        if split is not None and not policies:  # self-play: the slots the learner does not fly go to its copy
+            policies = [copy]
+        self.match = Match(self.core, policies, seed=seed + 1, num_ctrl=num_ctrl, sampler=sampler, split=split)
         self.ppo = ppo
         self.generator = torch.Generator().manual_seed(seed + 2)
         self.obs = self.match.reset(seed=seed)
@@ -180,15 +191,23 @@ class RolloutWorker:
         self.models_teammates = bool(getattr(self.model, "models_teammates", False))
 
     def mate_targets(
-        self, slots: np.ndarray, actions: np.ndarray, dists: np.ndarray, mean: np.ndarray, std: np.ndarray
+        self,
+        slots: np.ndarray,
+        actions: np.ndarray,
+        dists: np.ndarray,
+        mean: np.ndarray,
+        std: np.ndarray,
+        lent: np.ndarray | None = None,
     ) -> np.ndarray:
         """(B, k, P - 1, 3): for each learner (in ``slots`` (B, k)), each teammate in the observation's
         order (the other slots, ascending) with its executed turn (``actions`` (B, P)) and pre-squash
-        (mean, std): the learners' own (``mean``, ``std`` (B, k)), a trained partner's from ``dists``
-        (B, P, 2), NaN for a rule-based partner."""
+        (mean, std): the learners' own (``mean``, ``std`` (B, k)) but in slots ``lent`` (B, k) to partners, a
+        trained partner's from ``dists`` (B, P, 2), NaN for a rule-based partner."""
         P = self.core.num_p
         rows = np.arange(len(slots))[:, None]
         both = dists.copy()
+        if lent is not None:
+            mean, std = np.where(lent, dists[rows, slots, 0], mean), np.where(lent, dists[rows, slots, 1], std)
         both[rows, slots, 0], both[rows, slots, 1] = mean, std
         table = np.vstack([np.delete(np.arange(P), s) for s in range(P)])  # (P, P - 1)
         others = table[slots]  # (B, k, P - 1)
@@ -255,6 +274,7 @@ class RolloutWorker:
         rewards = np.empty((steps, B, k), np.float32)
         dones = np.empty((steps, B), bool)
         extras = {"learner_slots": np.empty((steps, B, k), np.int8)}
+        own = np.empty((steps, B, k), bool) if self.match.split is not None else None
         if u_num:
             extras["partner_members"] = np.empty((steps, B, u_num), np.int16)
             extras["partner_actions"] = np.empty((steps, B, u_num), np.float32)
@@ -276,6 +296,8 @@ class RolloutWorker:
             t1 = time.perf_counter()
             slots = self.match.learner_slots.copy()  # the teams of this step, before resets
             extras["learner_slots"][t] = slots
+            if own is not None:
+                own[t] = ~self.match.lent
             if u_num:
                 extras["partner_members"][t] = self.match.members
                 partner_slots = self.match.partner_slots.copy()
@@ -288,7 +310,12 @@ class RolloutWorker:
                 extras["partner_actions"][t] = np.take_along_axis(info["actions"], partner_slots, axis=1)
             if mates is not None:
                 mates[t] = self.mate_targets(
-                    slots, info["actions"], info["dists"], dist.mean.numpy(), dist.stddev.numpy()
+                    slots,
+                    info["actions"],
+                    info["dists"],
+                    dist.mean.numpy(),
+                    dist.stddev.numpy(),
+                    None if own is None else ~own[t],
                 )
             self.memory.record(self.obs.reshape(B * k, D), self._rows, self._keys, actions.reshape(-1))
             if "team_changed" in info:  # a new learner drone knows nothing of the episode so far
@@ -327,4 +354,5 @@ class RolloutWorker:
             episodes=episodes,
             timings={"simulation": t_sim, "inference": t_inf},
             extras=extras,
+            own=own,
         )

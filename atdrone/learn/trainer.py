@@ -47,7 +47,7 @@ from atdrone.policies.neural import NeuralPolicy
 from atdrone.policies.zoo import PolicyError, load_zoo
 from atdrone.rundir import RunError, check_resume, refuse_existing
 from atdrone.teams.evaluation import metrics, run_episodes
-from atdrone.teams.protocols import load_protocol
+from atdrone.teams.protocols import check_split, load_protocol
 
 log = logging.getLogger(__name__)
 STATE_FILE = "learner_state.safetensors"
@@ -83,7 +83,9 @@ class TrainConfig:
     stop_at_suc: stop once a periodic evaluation reaches this SUC % (0: off), to train a
     drone of a given skill level (the Zoo 2 drones).
     protocol: train with the team events of this protocol (configs/protocols/, e.g.
-    zoo3+swap: its events only; the partners stay the mode's) drawn in every episode.
+    zoo3+swap: its events only; the partners stay the mode's) drawn in every episode,
+    and its split of the team (``learners``: how many of the mode's learner slots the
+    learner flies; a copy of the learner, not trained on, or a zoo partner flies the rest).
     Bounds (checked by :func:`load_train_config`): name a run name (letters, digits, '.',
     '_', '-'; see :func:`atdrone.config.check_run_name`), seed in [0, 2**32 - 1],
     sizes within :data:`TRAIN_LIMITS`, device auto, cpu or a CUDA device torch sees.
@@ -142,9 +144,11 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
         _check_init_checkpoint(cfg.init_checkpoint, task.name)
     if cfg.protocol:
         try:
-            load_protocol(cfg.protocol)
+            protocol = load_protocol(cfg.protocol)
         except ConfigError as exc:
             raise ConfigError("protocol", str(exc)) from None
+        slots = task.players.num_ctrl if cfg.mode == "best_response" else task.players.num_p
+        check_split(protocol.split, slots, "protocol")
     return cfg
 
 
@@ -225,9 +229,15 @@ class Trainer:
             if updates == 0
             else int(np.random.SeedSequence([self.cfg.seed, updates]).generate_state(1)[0])
         )
-        events = load_protocol(self.cfg.protocol).plan if self.cfg.protocol else None
+        protocol = load_protocol(self.cfg.protocol) if self.cfg.protocol else None
         return RolloutWorker(
-            self.task, seed, self.model.architecture(), self.ppo, partners=self.partners, events=events
+            self.task,
+            seed,
+            self.model.architecture(),
+            self.ppo,
+            partners=self.partners,
+            events=protocol.plan if protocol is not None else None,
+            split=protocol.split if protocol is not None else None,
         )
 
     def _start_from(self, checkpoint: str) -> None:
@@ -409,6 +419,10 @@ def run_training(cfg: TrainConfig, resume: bool = False, progress: bool = True, 
         zoo_version = task_version(trainer.task.name)  # the partners its evaluations (best response) play
         tracker.log_params({"config": asdict(cfg), "ppo": asdict(trainer.ppo), "task": trainer.task.name})
         tracker.set_tags({"atdrone.zoo_version": zoo_version})
+        if cfg.protocol:  # the team events and split its training drew, as the document stood
+            protocol = load_protocol(cfg.protocol)
+            tracker.set_tags({"atdrone.protocol": protocol.name})
+            tracker.log_dict(protocol.to_dict(), "protocol.json")
         trainer.run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(trainer.run_dir / "config.json", json.dumps(asdict(cfg), indent=2).encode())
         trainer.train(progress=progress)

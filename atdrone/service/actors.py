@@ -53,7 +53,8 @@ class PolicyCache:
 class RolloutJob:
     """One worker's part of training a learner: its seed, environments and partners.
 
-    ``partners``: the specs of ``distribution.members`` in order (empty for self-play).
+    ``partners``: the specs of ``distribution.members`` in order (empty for self-play); ``events`` and
+    ``split``: the run's protocol's team events and split of the team (None: none).
     """
 
     seed: int
@@ -63,6 +64,8 @@ class RolloutJob:
     architecture: dict[str, Any]
     partners: tuple[MemberSpec, ...] = ()
     distribution: PartnerDistribution | None = None
+    events: EventPlan | None = None
+    split: tuple[int, int] | None = None
 
 
 WORKER_RESTARTS = 8  # restarts of one rollout worker in a run, and retries of one call, before the run fails
@@ -121,6 +124,8 @@ class RolloutWorkerActor:
             num_ctrl=job.num_ctrl,
             sampler=sampler,
             num_envs=job.num_envs,
+            events=job.events,
+            split=job.split,
         )
 
     def _next(self, weights: dict[str, torch.Tensor], steps: int) -> Fragment:

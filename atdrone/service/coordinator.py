@@ -54,7 +54,7 @@ from atdrone.service.actors import (
 )
 from atdrone.service.experiment import ExperimentConfig, registry_name
 from atdrone.teams.partners import LEARNER_COPY, PartnerDistribution, describe
-from atdrone.teams.protocols import zoo_of
+from atdrone.teams.protocols import load_protocol, zoo_of
 
 # streams of derive_seed(experiment seed, generation, STREAM, index)
 LEARNER_STREAM, EVAL_STREAM, RNG_STREAM = 0, 1, 2
@@ -136,6 +136,7 @@ class Coordinator:
         self.num_ctrl = self.task.players.num_ctrl
         self.num_partners = self.num_p - self.num_ctrl
         self.updates_per_generation = cfg.updates_per_generation
+        self.protocol = load_protocol(cfg.protocol) if cfg.protocol else None  # drawn in every rollout episode
         self.algorithm = algorithm(algorithm.parse_config(cfg.section, cfg.algorithm), cfg.seed)
         self.architecture = self.algorithm.architecture(self.ppo, self.task)  # the learners' network
         state = dict(state or {})
@@ -331,8 +332,16 @@ class Coordinator:
         num_ctrl = self.num_p if partners is None else self.num_ctrl
         specs = tuple(self.member_spec(m) for m in partners.members) if partners is not None else ()
         envs = self.ppo.num_envs // len(self.workers)
+        events, split = None, None
+        if self.protocol is not None:  # a split asks for at most the slots this training gives its learner
+            events, split = self.protocol.plan, self.protocol.split
+            split = None if split is None else (min(split[0], num_ctrl), min(split[1], num_ctrl))
         jobs = [
-            ray.put(RolloutJob(derive_seed(seed, i), self.ppo, envs, num_ctrl, self.architecture, specs, partners))
+            ray.put(
+                RolloutJob(
+                    derive_seed(seed, i), self.ppo, envs, num_ctrl, self.architecture, specs, partners, events, split
+                )
+            )
             for i in range(len(self.workers))
         ]
 
@@ -362,6 +371,8 @@ class Coordinator:
     def register(self, trained: Trained, parents: Sequence[str], tags: Mapping[str, Any] | None = None) -> str:
         member = member_id(self.cfg.algorithm, self.generation, self.registered)
         tags = {**self.algorithm.member_tags(), "zoo_version": task_version(self.task.name), **dict(tags or {})}
+        if self.protocol is not None:  # what its training drew: the protocol's document as it stood
+            tags["protocol"] = self.protocol.to_dict()
         self.registered += 1
         self.new_members.append(member)
         last = trained.history[-1] if trained.history else {}

@@ -357,6 +357,12 @@ def _generations(
                 **{f"atdrone.{k}": v for k, v in labels.items()},
             }
         )
+        if cfg.protocol:  # the team events and split its training drew, as the document stood
+            from atdrone.teams.protocols import load_protocol
+
+            protocol = load_protocol(cfg.protocol)
+            tracker.set_tags({"atdrone.protocol": protocol.name})
+            tracker.log_dict(protocol.to_dict(), "protocol.json")
         tracker.log_artifact(run_dir / "config.json")
         for g in range(start, cfg.generations):
             t0 = time.perf_counter()

@@ -90,6 +90,9 @@ class ExperimentConfig:
     (default: the config's own name, kept when a run is renamed with an override).
     register: register the best member as a version of the model ``atdrone-<experiment>``
     (a benchmark's cells do not: the benchmark registers only the weights it publishes).
+    protocol: train with a protocol's team events and split of the team drawn in every
+    rollout episode (configs/protocols/; its zoo is not used: the partners stay the
+    algorithm's); recorded in each member's registry tags and the MLflow run.
     """
 
     name: str
@@ -112,6 +115,7 @@ class ExperimentConfig:
     experiment: str = field(default="", metadata=OPTIONAL)
     register: bool = True
     section: dict[str, Any] = field(default_factory=dict)
+    protocol: str = field(default="", metadata=OPTIONAL)
 
     def algorithm_config(self) -> Any:
         """The algorithm's typed config section."""
@@ -123,6 +127,8 @@ class ExperimentConfig:
         """The document form: the section under the algorithm's name."""
         doc = asdict(self)
         doc[self.algorithm] = doc.pop("section")
+        if not self.protocol:  # a run without one saves the document runs saved before the key existed
+            doc.pop("protocol")
         return doc
 
 
@@ -148,7 +154,7 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
         overrides["experiment"] = base.get("experiment") or overrides.get("name") or base["name"]
     cfg: ExperimentConfig = load_config(ExperimentConfig, base, "experiments", **overrides)
     _check_settings(cfg)
-    check_task_field(cfg.task)
+    task = check_task_field(cfg.task)
     ppo = ppo_config(cfg.ppo, cfg.preset)
     cfg = replace(cfg, ppo=ppo_document(ppo))  # every value, as the run saves it
     if ppo.num_envs % cfg.num_workers:
@@ -167,7 +173,21 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
     if cfg.select_zoo:
         _check_zoo(cfg.select_zoo, "select_zoo", cfg.task)
         _check_disjoint(cfg.select_zoo)
+    if cfg.protocol:
+        _check_protocol(cfg.protocol, task.players.num_p)
     return cfg
+
+
+def _check_protocol(name: str, num_p: int) -> None:
+    """ConfigError at protocol unless it loads and its split fits the task's ``num_p`` pursuer slots (a training
+    call with partners caps it at the slots its learner fills, see :meth:`Coordinator.train`)."""
+    from atdrone.teams.protocols import check_split, load_protocol
+
+    try:
+        protocol = load_protocol(name)
+    except ConfigError as exc:
+        raise ConfigError("protocol", str(exc)) from None
+    check_split(protocol.split, num_p, "protocol")
 
 
 def _check_disjoint(zoo: str) -> None:

@@ -38,7 +38,14 @@ from atdrone.envs.geometry import NUM_WALLS
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import Zoo, load_zoo
 from atdrone.teams.match import Match, PartnerSampler
-from atdrone.teams.protocols import EVENT_FIELDS, EVENT_METRICS, Protocol, event_counts, event_metrics, load_protocol
+from atdrone.teams.protocols import (
+    EVENT_FIELDS,
+    EVENT_METRICS,
+    Protocol,
+    evaluation_protocol,
+    event_counts,
+    event_metrics,
+)
 
 if TYPE_CHECKING:  # imported where a frame is made: a learner or rollout actor that never evaluates skips it
     import pandas as pd
@@ -396,7 +403,7 @@ def evaluate(
 
     cfg = load_task(task)
     task_fit(learner, [cfg], cross_task)
-    proto = load_protocol(protocol) if protocol is not None else None
+    proto = evaluation_protocol(protocol) if protocol is not None else None
     zoo = (zoo if isinstance(zoo, Zoo) else load_zoo(zoo)).resolve(cfg)
     partners = zoo.policies()
     plan = proto.plan if proto is not None else None

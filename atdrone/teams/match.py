@@ -23,6 +23,13 @@ learners fill every slot, each is the others' partner), and when a swap or join
 puts a new drone in a partner slot it draws the member that flies it (another member of
 the partner set, from the episode's key) and has every partner policy forget that slot's
 drone (:meth:`forget`); :meth:`changed_learners` names the learner drones to forget.
+
+With a ``split`` (lo, hi) each episode draws how many of the learners' ``num_ctrl`` slots
+the learner flies, k uniform in lo..hi; the other num_ctrl - k learner columns are lent
+to partners for the episode (``lent`` (B, num_ctrl), each flown by a member drawn
+uniformly from the partner set): they act as partner slots (partner actions, team
+events, swaps), the learner's actions there are not executed, and ``info["team"]["lent"]``
+says which, so training leaves them out of the loss.
 """
 
 from __future__ import annotations
@@ -56,6 +63,7 @@ class Match:
         sampler: PartnerSampler | None = None,
         seats: Sequence[int] | None = None,
         lineups: np.ndarray | None = None,
+        split: tuple[int, int] | None = None,
     ) -> None:
         self.core = core
         self.partners: list[Policy] = (
@@ -69,6 +77,12 @@ class Match:
             raise ValueError(f"num_ctrl must be in 1..{core.num_p}, got {self.num_ctrl}")
         if self.num_unctrl and not self.partners:
             raise ValueError(f"{self.num_unctrl} partner slots but no partner policies")
+        if split is not None and not (1 <= split[0] <= split[1] <= self.num_ctrl and self.partners):
+            raise ValueError(
+                f"split must be (lo, hi) with 1 <= lo <= hi <= {self.num_ctrl} learner slots, and partner policies "
+                f"to lend the others to; got {split} with {len(self.partners)} partners"
+            )
+        self.split = split
         self.shuffle_slots = shuffle_slots and seats is None
         self.sampler = sampler or self._uniform
         self.lineups = None if lineups is None else np.asarray(lineups, dtype=np.intp)
@@ -91,6 +105,8 @@ class Match:
             order = np.r_[np.asarray(seats, dtype=np.intp), np.setdiff1d(order, seats)]
         self.slots = np.tile(order, (B, 1))
         self.members = np.zeros((B, self.num_unctrl), dtype=np.intp)
+        self.lent = np.zeros((B, self.num_ctrl), dtype=bool)  # learner columns a partner flies this episode
+        self.lent_members = np.zeros((B, self.num_ctrl), dtype=np.intp)
         self.seats = np.arange(B)  # the row number the policies know each row by (its first row)
         self.num_seats = B
         self._rows = np.arange(B)[:, None]
@@ -128,8 +144,13 @@ class Match:
             drawn = np.concatenate([self.sampler(rng, 1) for rng in rngs])
             self.members[envs] = drawn
             self._count(drawn)
+        if self.split is not None:  # drawn after the team, so an episode's team is the same with or without
+            lo, hi = self.split
+            flown = np.array([rng.integers(lo, hi + 1) for rng in rngs])
+            self.lent[envs] = np.arange(self.num_ctrl)[None] >= flown[:, None]
+            self.lent_members[envs] = np.stack([rng.integers(len(self.partners), size=self.num_ctrl) for rng in rngs])
         learner = np.zeros((len(envs), P), dtype=bool)
-        np.put_along_axis(learner, self.slots[envs, : self.num_ctrl], True, axis=1)
+        np.put_along_axis(learner, self.slots[envs, : self.num_ctrl], ~self.lent[envs], axis=1)
         self.core.bind_events(envs, learner)
 
     def _count(self, drawn: np.ndarray) -> None:
@@ -160,6 +181,7 @@ class Match:
             self._seat_poses = Poses(s.pos.copy(), s.heading.copy(), s.captured.copy(), self.core.arena)
         self.core.keep(rows)
         self.slots, self.members, self.seats = self.slots[rows], self.members[rows], self.seats[rows]
+        self.lent, self.lent_members = self.lent[rows], self.lent_members[rows]
         self._rows = np.arange(len(rows))[:, None]
         if self._obs is not None:
             self._obs = self._obs[rows]
@@ -196,18 +218,25 @@ class Match:
         return DroneBatch(obs=self._obs[env, slot], env=self.seats[env], slot=slot, poses=poses, keys=keys)
 
     def _replace(self, changed: np.ndarray) -> None:
-        """New drones in the ``changed`` (B, P) slots: a swapped or joined partner slot gets another member of
-        the partner set (drawn from the episode's key, step and slot); every partner policy forgets the slot."""
-        env, j = np.nonzero(np.take_along_axis(changed, self.partner_slots, axis=1))
+        """New drones in the ``changed`` (B, P) slots: a swapped or joined partner slot (or lent learner slot) gets
+        another member of the partner set (drawn from the episode's key, step and slot); every partner policy
+        forgets the slot."""
+        self._redraw(changed, self.partner_slots, self.members, np.ones_like(self.members, dtype=bool))
+        if self.split is not None:
+            self._redraw(changed, self.learner_slots, self.lent_members, self.lent)
+
+    def _redraw(self, changed: np.ndarray, slots: np.ndarray, members: np.ndarray, partnered: np.ndarray) -> None:
+        """:meth:`_replace` for the columns ``slots`` (B, n) whose ``members`` (B, n) fly where ``partnered``."""
+        env, j = np.nonzero(np.take_along_axis(changed, slots, axis=1) & partnered)
         if not len(env):
             return
-        slot = self.partner_slots[env, j]
+        slot = slots[env, j]
         n = len(self.partners)
         s = self.core.state
         arriving = s.present[env, slot]  # a swap or a join; a drop leaves the member in its (empty) slot
         u = unit(fold(fold(s.key[env], EVENT_DRAWS + 2), s.t[env] * self.core.num_p + slot))
-        other = (self.members[env, j] + 1 + (u * (n - 1)).astype(np.intp)) % n if n > 1 else self.members[env, j]
-        self.members[env, j] = np.where(arriving, other, self.members[env, j])
+        other = (members[env, j] + 1 + (u * (n - 1)).astype(np.intp)) % n if n > 1 else members[env, j]
+        members[env, j] = np.where(arriving, other, members[env, j])
         self.forget(env, slot)
 
     def forget(self, env: np.ndarray, slot: np.ndarray) -> None:
@@ -234,12 +263,15 @@ class Match:
 
     def team(self) -> dict[str, np.ndarray]:
         """The teams of the episodes now running (the layout of ``info["team"]``)."""
-        return {
+        team = {
             "learner_slots": self.learner_slots.copy(),
             "partner_slots": self.partner_slots.copy(),
             "partner_members": self.members.copy(),
             "partners": self._names[self.members],
         }
+        if self.split is not None:
+            team["lent"] = self.lent.copy()
+        return team
 
     def learner_batch(self) -> DroneBatch:
         """The learners' drones as a DroneBatch, env-major (for policies that drive learners)."""
@@ -255,8 +287,11 @@ class Match:
         poses = self.poses()
         for m, policy in enumerate(self.partners):
             env, j = np.nonzero(self.members == m)
+            slot = self.partner_slots[env, j]
+            if self.split is not None:  # and the learner columns lent to this member
+                lent_env, c = np.nonzero(self.lent & (self.lent_members == m))
+                env, slot = np.r_[env, lent_env], np.r_[slot, self.learner_slots[lent_env, c]]
             if len(env):
-                slot = self.partner_slots[env, j]
                 actions[env, slot] = policy.act(self.drones(env, slot, poses))
                 last = getattr(policy, "last_dist", None)
                 if dists is not None and last is not None:

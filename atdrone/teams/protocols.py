@@ -13,6 +13,13 @@ after the drop before it); ``slots`` which slots it may hit: "partners" (default
 (:mod:`atdrone.envs.events`), so a protocol is played the same wherever a zoo is:
 ``atdrone evaluate --zoo zoo3+swap``, a training config's ``"protocol"`` key.
 
+A training protocol may also draw the split of the team: ``"learners": [lo, hi]``, how
+many of its slots the learner flies in each episode (uniform in lo..hi, at most the
+slots its training mode gives it); the mode's partners fly the others, and those
+drone-steps are not trained on (:class:`~atdrone.teams.match.Match`). With a split the
+events may be left out. Evaluation plays every split itself (``atdrone evaluate
+--splits``), so a protocol with a split is for training only.
+
 The metrics of an episode with events split at the first event that happened:
   EVT      % of episodes that lived to their first event;
   SUC_pre  % of all episodes that caught every evader before it, COL_pre with a collision;
@@ -50,11 +57,15 @@ class Protocol:
     zoo: str
     plan: EventPlan
     description: str = ""
+    split: tuple[int, int] | None = None  # the "learners" range: slots the learner flies, drawn per episode
 
     def to_dict(self) -> dict[str, Any]:
         """The document's form (what a run records)."""
         events = [{"kind": e.kind, "steps": list(e.steps), "slots": e.slots} for e in self.plan.events]
-        return {"name": self.name, "zoo": self.zoo, "description": self.description, "events": events}
+        doc: dict[str, Any] = {"name": self.name, "zoo": self.zoo, "description": self.description, "events": events}
+        if self.split is not None:
+            doc["learners"] = list(self.split)
+        return doc
 
 
 def protocol_names() -> tuple[str, ...]:
@@ -63,7 +74,8 @@ def protocol_names() -> tuple[str, ...]:
 
 
 def is_protocol(name_or_path: str | Path) -> bool:
-    """Whether ``name_or_path`` names a shipped protocol or a JSON file holding one (it has "events")."""
+    """Whether ``name_or_path`` names a shipped protocol or a JSON file holding one (it has "events" or
+    "learners")."""
     text = str(name_or_path)
     if text in protocol_names():
         return True
@@ -71,16 +83,38 @@ def is_protocol(name_or_path: str | Path) -> bool:
     if path.suffix != ".json" or not path.is_file():
         return False
     document = read_json(path)
-    return isinstance(document, dict) and "events" in document
+    return isinstance(document, dict) and ("events" in document or "learners" in document)
 
 
 def zoo_of(name: str) -> tuple[str, EventPlan | None]:
     """The zoo behind a zoo name and the team events to play with it: a protocol's zoo and plan, or the zoo
     itself and None (wherever a zoo is named, a protocol may be)."""
     if is_protocol(name):
-        protocol = load_protocol(name)
+        protocol = evaluation_protocol(name)
         return protocol.zoo, protocol.plan
     return name, None
+
+
+def check_split(split: tuple[int, int] | None, slots: int, path: str) -> None:
+    """ConfigError at ``path`` when a protocol's ``learners`` range asks for more than the ``slots`` a training
+    mode's learner fills."""
+    if split is not None and split[1] > slots:
+        raise ConfigError(
+            f"{path}.learners", f"the learner fills {slots} slots here, so at most {slots}; got {list(split)}"
+        )
+
+
+def evaluation_protocol(name_or_path: str | Path | Protocol) -> Protocol:
+    """:func:`load_protocol` for evaluation: ConfigError for a protocol that draws the team's split (training only;
+    evaluation plays every split itself, ``atdrone evaluate --splits``)."""
+    protocol = load_protocol(name_or_path)
+    if protocol.split is not None:
+        raise ConfigError(
+            "learners",
+            f"protocol {protocol.name!r} draws the team's split, which only training does "
+            "(evaluation plays every split: atdrone evaluate --splits)",
+        )
+    return protocol
 
 
 def load_protocol(name_or_path: str | Path | Protocol) -> Protocol:
@@ -98,15 +132,23 @@ def parse_protocol(document: Any, fallback_name: str = "") -> Protocol:
     """A protocol from its parsed document (see the module docstring)."""
     if not isinstance(document, dict):
         raise ConfigError("", "a protocol document is a JSON object")
-    unknown = set(document) - {"name", "zoo", "description", "events"}
+    unknown = set(document) - {"name", "zoo", "description", "events", "learners"}
     if unknown:
-        raise ConfigError(sorted(unknown)[0], "unknown key (known: name, zoo, description, events)")
+        raise ConfigError(sorted(unknown)[0], "unknown key (known: name, zoo, description, events, learners)")
     zoo = document.get("zoo")
     if not isinstance(zoo, str) or not zoo:
         raise ConfigError("zoo", "the zoo the partners come from (e.g. zoo3) is required")
-    raw = document.get("events")
-    if not isinstance(raw, list) or not raw:
-        raise ConfigError("events", "a non-empty list of events is required")
+    split = document.get("learners")
+    if split is not None and not (
+        isinstance(split, list)
+        and len(split) == 2
+        and all(isinstance(k, int) and not isinstance(k, bool) for k in split)
+        and 1 <= split[0] <= split[1]
+    ):
+        raise ConfigError("learners", f"must be [low, high] integers, 1 <= low <= high, got {split!r}")
+    raw = document.get("events", [] if split is not None else None)
+    if not isinstance(raw, list) or (not raw and split is None):
+        raise ConfigError("events", "a non-empty list of events is required (or a learners range)")
     specs = []
     for i, entry in enumerate(raw):
         where = f"events[{i}]"
@@ -135,7 +177,13 @@ def parse_protocol(document: Any, fallback_name: str = "") -> Protocol:
     name = document.get("name", fallback_name)
     if not isinstance(name, str) or not name:
         raise ConfigError("name", "must be a non-empty string")
-    return Protocol(name=name, zoo=zoo, plan=EventPlan(tuple(specs)), description=str(document.get("description", "")))
+    return Protocol(
+        name=name,
+        zoo=zoo,
+        plan=EventPlan(tuple(specs)),
+        description=str(document.get("description", "")),
+        split=None if split is None else (split[0], split[1]),
+    )
 
 
 def event_counts(records: pd.DataFrame) -> tuple[dict[str, tuple[int, int]], np.ndarray]:
