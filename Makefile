@@ -71,11 +71,12 @@ lint: $(STAMP)
 docs: $(STAMP)
 	$(BIN)/mkdocs build --strict --quiet
 
-# the type check runs beside the test sessions (half a minute of one core from a fresh clone)
+# the type check runs beside the test sessions (half a minute of one core from a fresh clone); each session
+# ends with its 25 slowest tests
 test: docs
 	$(BIN)/ruff check atdrone tests benchmarks jobs
 	$(BIN)/ruff format --check atdrone tests benchmarks jobs
-	$(BIN)/python tests/run_suite.py --beside $(BIN)/mypy
+	$(BIN)/python tests/run_suite.py --beside $(BIN)/mypy --durations=25
 
 # the quick HOLA-Drone V2 run on a local Ray, in runs/hola_quick (<= 10 min on 2 cores); run again, it
 # resumes an interrupted run or shows the finished one
