@@ -41,6 +41,13 @@ def add_benchmark(subparsers: Any) -> argparse.ArgumentParser:
         "'floor-*'); the others follow in grid order. Results do not depend on the order",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress output")
+    p.add_argument(
+        "--report-so-far",
+        metavar="DIR",
+        default=None,
+        help="run nothing: write the report of the cells finished so far to DIR (a folder other than the results "
+        "folder; seconds, no Ray), its report.md naming the cells still missing",
+    )
     return p
 
 
@@ -49,6 +56,8 @@ def run_benchmark(args: argparse.Namespace) -> int:
     from atdrone.benchmark.job import ended
     from atdrone.benchmark.job import run_benchmark as run
 
+    if args.report_so_far is not None:
+        return _report_so_far(args)
     cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir)
     interrupt_on_signals()  # SIGTERM as Ctrl-C (installed again once Ray has started)
     try:
@@ -69,6 +78,22 @@ def run_benchmark(args: argparse.Namespace) -> int:
     print(f"{cfg.name}: {len(summary['records'])} cells; report {cfg.results / 'report.md'}")
     for m in summary["weights"]:
         print(f"  weights:{m['method']}/{m['task']} (seed {m['seed']}, chosen on {m['selected_on']['zoo'] or '-'})")
+    return 0
+
+
+def _report_so_far(args: argparse.Namespace) -> int:
+    """``--report-so-far DIR``: the report of the finished cells in DIR; the job's results folder is refused."""
+    from atdrone.benchmark.cells import cells, load_benchmark
+    from atdrone.benchmark.job import report_so_far
+    from atdrone.errors import UserError
+
+    final = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.results_dir).results
+    cfg = load_benchmark(args.config, out_dir=args.out_dir, results_dir=args.report_so_far)
+    if cfg.results == final:
+        raise UserError(f"--report-so-far {args.report_so_far}: that is the benchmark's results folder; name another")
+    files, missing = report_so_far(cfg)
+    done = len(cells(cfg)) - len(missing)
+    print(f"{cfg.name}: a report of {done} finished cell(s), {len(missing)} missing: {files['report.md']}")
     return 0
 
 

@@ -16,6 +16,11 @@ Table 2 numbers as metrics, to a parent MLflow run (experiment ``<name>``, run
 ``benchmark``), whose id ``benchmark_state.json`` keeps so a resumed benchmark continues
 the same run. A folder holding a different benchmark (other methods, tasks, seeds,
 budgets) is refused.
+
+While the job runs, :func:`report_so_far` writes the report of the cells finished so far
+to another folder (``atdrone benchmark CONFIG --report-so-far DIR``; no Ray, nothing
+trained, no weights kept), its ``report.md`` opening with how many cells it holds and
+which are missing.
 """
 
 from __future__ import annotations
@@ -32,7 +37,8 @@ from typing import Any
 
 from atdrone.benchmark.cells import Cell, cell_wall, cells, run_cell
 from atdrone.benchmark.config import BenchmarkConfig
-from atdrone.fileio import atomic_write_bytes
+from atdrone.errors import UserError
+from atdrone.fileio import atomic_write_bytes, atomic_write_text
 from atdrone.rundir import RunError, read_json
 
 log = logging.getLogger(__name__)
@@ -140,6 +146,45 @@ def run_benchmark(
     if progress:
         print(f"[{cfg.name}] report: {cfg.results / 'report.md'}; MLflow run {run_id}", flush=True)
     return {"records": records, "files": files, "weights": manifests, "mlflow_run_id": run_id}
+
+
+def report_so_far(cfg: BenchmarkConfig) -> tuple[dict[str, Path], list[str]]:
+    """The report of the cells finished so far, in ``cfg.results`` (name a folder other than the job's own: the job
+    writes its report and weights there when every cell is done); the files by name, and the cells still missing.
+
+    Reads the cell records only (no Ray; seconds). ``report.md`` opens with how many of the grid's cells it holds
+    and which are missing, by method; a comparison that lacks cells has fewer seeds (the tables' ``n``) or is
+    absent. UserError when no cell is finished yet."""
+    from datetime import UTC, datetime
+
+    from atdrone.benchmark.bounds import bounds_from_records, write_bounds
+    from atdrone.benchmark.report import write_report
+
+    grid = cells(cfg)
+    done = finished(cfg)
+    if not done:
+        raise UserError(f"{cfg.name}: no finished cell yet in {cfg.folder / CELLS_DIR}, so no report to write")
+    missing = [c.name for c in grid if c.name not in done]
+    records = [done[c.name] for c in grid if c.name in done]
+    cfg.results.mkdir(parents=True, exist_ok=True)
+    files = write_report(cfg, records)
+    files["bounds"] = write_bounds(bounds_from_records(records, cfg.eval_episodes), cfg.results / "bounds.json")
+    when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+    head = [f"**A report so far** ({when}): {len(records)} of the grid's {len(grid)} cells are finished."]
+    if missing:
+        by_method: dict[str, list[str]] = {}
+        for name in missing:
+            by_method.setdefault(name.split("-", 1)[0], []).append(name)
+        head.append(
+            "Missing: " + "; ".join(f"{m} ({len(v)}: {', '.join(v)})" for m, v in by_method.items()) + ". "
+            "Tables hold the seeds finished (`n`); a comparison without both sides is absent. No weights are kept "
+            "until the job ends."
+        )
+    else:
+        head.append("Every cell is finished; the job's own end writes the final report and keeps the weights.")
+    title, rest = files["report.md"].read_text().split("\n", 1)  # under the report's title
+    files["report.md"] = atomic_write_text(files["report.md"], f"{title}\n\n{' '.join(head)}\n{rest}")
+    return files, missing
 
 
 def _log_results(tracker: Any, cfg: BenchmarkConfig, records: Sequence[dict[str, Any]], table2: Any) -> None:
