@@ -76,9 +76,9 @@ def _report(results: Path, name: str) -> dict[str, Any]:
     return {"text": text, "budget": budget, **frames}
 
 
-# four benchmark runs (one on a two-node cluster of its own) beside the other worker's Ray tests: 580 s on a slow
-# 2-core host with the flights' busy loop on one core (2026-11-29), near the suite's 600 s limit for a test
-@pytest.mark.timeout(1200)
+# four benchmark runs (one on a two-node cluster of its own) beside the other worker's Ray tests: 490-570 s on a
+# slow 2-core host with the flights' busy loop on one core (2026-11-30)
+@pytest.mark.timeout(1800)
 def test_a_stopped_then_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_uninterrupted_one(
     local_ray, tmp_path, mlflow_store, capsys
 ):
@@ -90,7 +90,7 @@ def test_a_stopped_then_killed_benchmark_finishes_only_its_missing_cells_and_rep
     first = folder / "cells" / "sp-4p2e1o-s0.json"
 
     def stop_when(victim: subprocess.Popen[str], ready: Any, sig: int) -> str:
-        deadline = time.monotonic() + 480  # a hang guard: beside the reference's two-node cluster at the start
+        deadline = time.monotonic() + 900  # a hang guard: beside the reference's two-node cluster at the start
         while not ready():
             assert victim.poll() is None, victim.communicate()[0][-3000:]
             assert time.monotonic() < deadline, "never got there"

@@ -497,32 +497,28 @@ def test_a_cells_wall_time_sums_its_generations_over_every_attempt_plus_its_eval
 
 
 def test_a_report_so_far_holds_the_finished_cells_and_names_the_missing_ones(made_up, tmp_path: Path) -> None:
-    """Half the SP cells and every other method's are finished: the report of those is written to another folder,
-    opening with how many cells it holds and which are missing; the command refuses the results folder."""
+    """Every cell but SP's on 4p2e5o is finished: ``--report-so-far`` writes the report of those to another folder,
+    opening with how many cells it holds and which are missing; the results folder is refused."""
     from atdrone.benchmark.job import cell_path, report_so_far
     from atdrone.cli import main
     from atdrone.errors import UserError
 
     cfg, records = made_up
-    so_far = load_benchmark({**cfg.to_dict(), "results_dir": str(tmp_path / "so_far")})
     with pytest.raises(UserError, match="no finished cell yet"):
-        report_so_far(so_far)
+        report_so_far(load_benchmark({**cfg.to_dict(), "results_dir": str(tmp_path / "none")}))
     missing = {r["name"] for r in records if r["name"].startswith("sp-4p2e5o")}
     for record in records:
         if record["name"] not in missing:
             path = cell_path(cfg, Cell(**record["cell"]))
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(record))
-    files, left = report_so_far(so_far)
-    assert set(left) == missing and files["report.md"].parent == tmp_path / "so_far"
-    title, _, head = files["report.md"].read_text().splitlines()[:3]
-    assert title == "# Benchmark made_up" and f"{len(records) - 3} of the grid's {len(records)} cells" in head
-    assert "Missing: sp (3: sp-4p2e5o-s0, sp-4p2e5o-s1, sp-4p2e5o-s2)" in head
-    table = pd.read_csv(files["table.csv"])
-    assert set(table[table.method == "sp"].task) == {"4p2e1o"} and not (cfg.results / "report.md").exists()
-    assert not (tmp_path / "so_far" / "weights").exists()
     doc = tmp_path / "made_up.json"
     doc.write_text(json.dumps(cfg.to_dict()))
-    assert main(["benchmark", str(doc), "--report-so-far", str(tmp_path / "cli")]) == 0
-    assert (tmp_path / "cli" / "report.md").is_file()
-    assert main(["benchmark", str(doc), "--report-so-far", str(cfg.results)]) != 0
+    assert main(["benchmark", str(doc), "--report-so-far", str(cfg.results)]) != 0  # refused before any work
+    assert main(["benchmark", str(doc), "--report-so-far", str(tmp_path / "so_far")]) == 0
+    title, _, head = (tmp_path / "so_far" / "report.md").read_text().splitlines()[:3]
+    assert title == "# Benchmark made_up" and f"{len(records) - 3} of the grid's {len(records)} cells" in head
+    assert "Missing: sp (3: sp-4p2e5o-s0, sp-4p2e5o-s1, sp-4p2e5o-s2)" in head
+    table = pd.read_csv(tmp_path / "so_far" / "table.csv")
+    assert set(table[table.method == "sp"].task) == {"4p2e1o"} and not (cfg.results / "report.md").exists()
+    assert not (tmp_path / "so_far" / "weights").exists()

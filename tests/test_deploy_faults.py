@@ -112,19 +112,20 @@ def test_every_drone_lands_softly_after_a_fault_on_a_busy_host(
 def test_host_pauses_while_the_loop_sleeps_are_ridden_out(
     tmp_path: Path, registry_member: tuple[str, str], busy_host: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """From takeoff on, ten SIGSTOPs of the ground station from outside, 0.2 wall s each (0.4 s of the drones'
-    clock: past the 0.3 s stale-pose limit, under the firmware's watchdogs), at phases unrelated to the loop's
-    ticks, so most land while the loop sleeps: each is a host pause, not stale poses of every drone nor lost
-    links, and the episode is flown to its end."""
+    """Once the drones are up, eight SIGSTOPs of the ground station from outside, 0.2 wall s each (0.4 s of the
+    drones' clock: past the 0.3 s stale-pose limit, under the firmware's watchdogs), at phases unrelated to the
+    loop's ticks, so most land while the loop sleeps: each is a host pause, not stale poses of every drone nor
+    lost links, and the episode is flown to its end. (A stop while cflib waits on an answer, as in arming, is
+    a link error that cflib reports: the flight then never takes off.)"""
     pid, pausers = os.getpid(), []
-    code = "import os, signal, time\nfor k in range(10):\n"
+    code = "import os, signal, time\nfor k in range(8):\n"
     code += f"    time.sleep(0.4 + 0.013 * k); os.kill({pid}, signal.SIGSTOP); time.sleep(0.2); "
     code += f"os.kill({pid}, signal.SIGCONT)\n"
     takeoff = Flight._takeoff
 
     def pausing_takeoff(flight: Flight) -> None:
-        pausers.append(subprocess.Popen([sys.executable, "-S", "-c", code]))
         takeoff(flight)
+        pausers.append(subprocess.Popen([sys.executable, "-S", "-c", code]))
 
     monkeypatch.setattr(Flight, "_takeoff", pausing_takeoff)
     try:

@@ -1,11 +1,10 @@
 """The code blocks of README.md and docs/ run as written.
 
-A fenced block tagged ``sh`` or ``python`` runs in a scratch folder (``configs/`` and
-``benchmarks/`` linked in, so a block reads the committed results; MLflow in the folder)
-unless the line before it is a marker comment ``<!-- docs-test: KIND -->`` with KIND one
-of :data:`SKIP` (what CONTRIBUTING.md documents). A ``json`` block must parse. A block
-without a language that holds commands is refused, so a command cannot hide from this
-test.
+A fenced block tagged ``sh`` or ``python`` runs in a scratch folder (``configs/`` linked
+in, MLflow in the folder) unless the line before it is a marker comment
+``<!-- docs-test: KIND -->`` with KIND one of :data:`SKIP` (what CONTRIBUTING.md
+documents). A ``json`` block must parse. A block without a language that holds commands
+is refused, so a command cannot hide from this test.
 
 After ``make demo``, ``ATDRONE_DOCS_DEMO=1 .venv/bin/python -m pytest tests/test_docs.py``
 also runs the ``demo`` blocks, in the repository root where the demo left its run
@@ -108,7 +107,6 @@ def test_every_block_is_tagged_and_marked_with_a_known_kind(block: Block) -> Non
 @pytest.fixture
 def scratch(tmp_path: Path) -> tuple[Path, dict[str, str]]:
     (tmp_path / "configs").symlink_to(ROOT / "configs")
-    (tmp_path / "benchmarks").symlink_to(ROOT / "benchmarks")  # read, never written: a block writes in the folder
     env = {
         **os.environ,
         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
