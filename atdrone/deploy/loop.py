@@ -348,13 +348,16 @@ class Flight(Episodes):
     def _estimate_off(self, pos: np.ndarray, judged: np.ndarray, now: float) -> np.ndarray:
         """Per drone, how long (clock s) its logged onboard estimate has been more than the shield's
         ``estimate_tolerance`` from its fresh pose (0: it agrees, or it is not judged: not airborne, no pose or no
-        estimate)."""
+        estimate). A drone whose link is silent past the link timeout is not judged: its last logged estimate is
+        stale, and the silence is the link rule's. Like link and pose ages, the time off counts from the loop's last
+        resume after a host pause."""
+        judged = judged & (np.asarray(self.links.silence) <= self.shield_cfg.link_timeout)
         estimates = self.bridge.estimates()
         est = np.array([estimates.get(n, (np.nan,) * 4)[:3] for n in self.names], dtype=np.float64)
         apart = np.linalg.norm(est - pos, axis=1)
         off = judged & np.isfinite(apart) & (apart > self.shield_cfg.estimate_tolerance)
         self.off_since = np.where(off, np.where(np.isfinite(self.off_since), self.off_since, now), np.inf)
-        return np.where(off, now - self.off_since, 0.0)
+        return np.where(off, np.minimum(now - self.off_since, self._grace()), 0.0)
 
     def _velocity(self, pos: np.ndarray, age: np.ndarray) -> np.ndarray:
         """Velocities (D, 3) from the last two ticks' fresh poses (NaN where unknown), for the shield's

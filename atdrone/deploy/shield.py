@@ -49,7 +49,8 @@ Rules (``rule`` names as they appear in the flight log):
   emergency stop fired) -> it is STOPPED and every other drone lands.
 - ``estimate_off``: a drone's onboard state estimate more than ``estimate_tolerance`` from its
   motion-capture pose for ``estimate_hold`` s (the second opinion: its poses no longer reach
-  its estimator, or the estimator diverged; it flies on a belief) -> that drone lands.
+  its estimator, or the estimator diverged; it flies on a belief) -> that drone lands. The flight judges only
+  estimates of drones whose link is heard, and counts the time from its last resume after a host pause.
 - ``battery``: below ``min_battery`` -> that drone lands.
 - ``signal``: SIGINT/SIGTERM -> all land.
 
