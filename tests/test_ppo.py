@@ -207,14 +207,20 @@ def _assert_same_learner(got: Trainer, want: Trainer) -> None:
     assert torch.equal(got.learner.generator.get_state(), want.learner.generator.get_state())
 
 
-def test_a_run_killed_after_a_save_and_resumed_ends_as_the_uninterrupted_run(tmp_path, monkeypatch):
+@pytest.mark.parametrize("protocol", [None, "sizes3-6"])
+def test_a_run_killed_after_a_save_and_resumed_ends_as_the_uninterrupted_run(tmp_path, monkeypatch, protocol):
     """Four updates with an evaluation and a save every two: run A straight through; run B killed right after
     its first save (update 2) and resumed in a new Trainer. Both end with the same weights, optimiser state,
-    generator and history rows (evaluations included; only wall-clock fields differ), and the same history.csv."""
+    generator and history rows (evaluations included; only wall-clock fields differ), and the same history.csv.
+    So too with team sizes drawn per rollout (teams of 3 to 6)."""
     kw = {"total_env_steps": 4 * 8 * 32, "eval_every": 2, "checkpoint_every": 2, "eval_episodes": 2}
+    if protocol:
+        kw.update(protocol=protocol, seed=3)  # seed 1 happens to draw teams of 5 for all four rollouts
     a = Trainer(_tiny(tmp_path / "a", **kw))
     a.train(progress=False)
     assert a.updates == 4 and len(a.history) == 4 and [("eval/SUC" in r) for r in a.history] == [0, 1, 0, 1]
+    sizes = {r["train/samples"] / (8 * 32) for r in a.history}  # pursuers per env step: the rollouts' team sizes
+    assert sizes == {4.0} if protocol is None else len(sizes) > 1 and sizes <= {3.0, 4.0, 5.0, 6.0}, sizes
 
     class Killed(Exception):
         pass

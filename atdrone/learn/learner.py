@@ -63,18 +63,20 @@ def seeded_model(architecture: Mapping[str, Any], seed: int) -> PolicyModel:
         return build_model(dict(architecture))
 
 
-def fragment_stats(frag: Fragment) -> dict[str, float]:
-    """Episode outcomes and timings of a fragment, namespaced train/ and perf/."""
-    out: dict[str, float] = {"train/samples": float(frag.samples)}
-    eps = frag.episodes
+def fragment_stats(frags: Fragment | Sequence[Fragment]) -> dict[str, float]:
+    """Episode outcomes and timings of fragments (one, or one per team size), namespaced train/ and perf/."""
+    frags = [frags] if isinstance(frags, Fragment) else list(frags)
+    samples = sum(f.samples for f in frags)
+    out: dict[str, float] = {"train/samples": float(samples)}
+    eps = [e for f in frags for e in f.episodes]
     if eps:
         out["train/episodes"] = float(len(eps))
         out["train/success"] = float(np.mean([e["outcome"] == "captured" for e in eps]))
         out["train/collision"] = float(np.mean([e["collided"] for e in eps]))
         out["train/episode_return"] = float(np.mean([e["return"] for e in eps]))
         out["train/episode_length"] = float(np.mean([e["length"] for e in eps]))
-    out["perf/simulation_s"] = frag.timings.get("simulation", 0.0)
-    out["perf/inference_s"] = frag.timings.get("inference", 0.0)
+    out["perf/simulation_s"] = sum(f.timings.get("simulation", 0.0) for f in frags)
+    out["perf/inference_s"] = sum(f.timings.get("inference", 0.0) for f in frags)
     return out
 
 
@@ -144,22 +146,24 @@ class Learner:
     def update(self, fragments: Fragment | Sequence[Fragment]) -> dict[str, float]:
         """One PPO update over the fragments (joined along environments); returns statistics."""
         t0 = time.perf_counter()
-        frag = concat_fragments([fragments] if isinstance(fragments, Fragment) else list(fragments))
+        given = [fragments] if isinstance(fragments, Fragment) else list(fragments)
         cfg = replace(self.ppo, ent_coef=self.hparams["ent_coef"])
         lr = self.current_lr()
+        sizes = sorted({f.num_p for f in given})
+        frags = [concat_fragments([f for f in given if f.num_p == p]) for p in sizes]  # one per team size
+        batch: Any = (
+            frags[0].batch(cfg.gamma, cfg.gae_lambda)
+            if len(frags) == 1
+            else [(f.num_p, f.batch(cfg.gamma, cfg.gae_lambda)) for f in frags]
+        )
         stats = ppo_update(
-            self.model,
-            self.optimizer,
-            frag.batch(cfg.gamma, cfg.gae_lambda),
-            cfg,
-            self.spec.num_e,
-            self.spec.num_p,
-            self.generator,
-            lr=lr,
+            self.model, self.optimizer, batch, cfg, self.spec.num_e, self.spec.num_p, self.generator, lr=lr
         )
         self.updates += 1
         out = {f"train/{k}": v for k, v in stats.items()}
-        out.update(fragment_stats(frag))
+        out.update(fragment_stats(frags))
+        if len(sizes) > 1 or sizes[0] not in (0, self.spec.num_p):  # sizes drawn: the mean pursuers per sample
+            out["train/team_size"] = sum(f.num_p * f.samples for f in frags) / max(out["train/samples"], 1.0)
         out["train/lr"] = lr
         log_std = getattr(self.model, "log_std", None)  # the exploration noise, for models that have one
         if log_std is not None:

@@ -7,7 +7,7 @@ Ray learner) than the rollout. It runs on the device of the model (a GPU when gi
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
@@ -200,10 +200,27 @@ def learning_rate(cfg: PPOConfig, progress: float) -> float:
     return cfg.lr
 
 
+Batch = dict[str, np.ndarray]
+
+
+def minibatches(counts: Sequence[int], size: int, generator: torch.Generator) -> list[tuple[int, torch.Tensor]]:
+    """One epoch's minibatches of groups of ``counts`` samples: (group, sample indices) in the order to take
+    them. Each group is shuffled and cut in minibatches of ``min(size, its count)`` (a remainder left out);
+    with several groups the minibatches are taken in a shuffled order."""
+    out = []
+    for g, n in enumerate(counts):
+        mb = min(size, n)
+        order = torch.randperm(n, generator=generator)
+        out += [(g, order[start : start + mb]) for start in range(0, n - mb + 1, mb)] if mb else []
+    if len(counts) > 1:
+        out = [out[int(i)] for i in torch.randperm(len(out), generator=generator)]
+    return out
+
+
 def ppo_update(
     model: PolicyModel,
     optimizer: torch.optim.Optimizer,
-    batch: dict[str, np.ndarray],
+    batch: Batch | Sequence[tuple[int, Batch]],
     cfg: PPOConfig,
     num_e: int,
     num_p: int,
@@ -215,23 +232,25 @@ def ppo_update(
     batch: obs (N, D), u (N,) pre-squash actions, logp (N,), adv (N,), ret (N,),
     state (N, S) for a centralised critic, and mates (N, P - 1, 3) for a teammate model
     with a decoder, whose loss (``decoder_loss``) joins the update times teammate_coef.
+    Teams of several sizes (:mod:`atdrone.learn.sizes`) come as (pursuers, batch) pairs:
+    every minibatch is of one size, the sizes' minibatches shuffled together.
     """
     device = next(model.parameters()).device
-    t = {k: torch.as_tensor(v, device=device) for k, v in batch.items()}
-    n = t["obs"].shape[0]
+    groups = [(num_p, batch)] if isinstance(batch, dict) else list(batch)
+    data = [(p, {k: torch.as_tensor(v, device=device) for k, v in b.items()}) for p, b in groups]
     if lr is not None:
         for group in optimizer.param_groups:
             group["lr"] = lr
     stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
-    decoder = "mates" in t and getattr(model, "decoder", None) is not None
+    decoder = any("mates" in t for _, t in data) and getattr(model, "decoder", None) is not None
     if decoder:
         stats["decoder_loss"] = []
-    mb = min(cfg.minibatch_size, n)
-    groups = model.parameter_groups()  # actor and critic: the critic's large gradients must not shrink the actor's
+    params = model.parameter_groups()  # actor and critic: the critic's large gradients must not shrink the actor's
+    counts = [t["obs"].shape[0] for _, t in data]
     for _ in range(cfg.epochs):
-        order = torch.randperm(n, generator=generator).to(device)
-        for start in range(0, n - mb + 1, mb):
-            idx = order[start : start + mb]
+        for g, order in minibatches(counts, cfg.minibatch_size, generator):
+            p, t = data[g]
+            idx = order.to(device)
             dist = model.dist(t["obs"][idx], num_e)
             logp = squash_log_prob(dist, t["u"][idx])
             ratio = (logp - t["logp"][idx]).exp()
@@ -240,7 +259,7 @@ def ppo_update(
                 adv = (adv - adv.mean()) / (adv.std() + 1e-8)
             pg = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean()
             state = t["state"][idx] if "state" in t else None
-            v = model.value(t["obs"][idx], num_e, state, num_p)
+            v = model.value(t["obs"][idx], num_e, state, p)
             vloss = 0.5 * ((v - t["ret"][idx]) ** 2).mean()
             ent = dist.entropy().mean()
             loss = pg + cfg.vf_coef * vloss - cfg.ent_coef * ent
@@ -250,8 +269,8 @@ def ppo_update(
                 stats["decoder_loss"].append(float(dec.detach()))
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            for params in groups:
-                nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
+            for group_params in params:
+                nn.utils.clip_grad_norm_(group_params, cfg.max_grad_norm)
             optimizer.step()
             with torch.no_grad():
                 log_ratio = logp - t["logp"][idx]

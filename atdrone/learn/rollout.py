@@ -64,6 +64,7 @@ class Fragment:
     timings: dict[str, float] = field(default_factory=dict)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     own: np.ndarray | None = None  # (T, B, k) bool: the learner flew the slot (None: everywhere); else not trained on
+    num_p: int = 0  # the team's pursuers (0: not said)
 
     @property
     def samples(self) -> int:
@@ -101,7 +102,7 @@ class Fragment:
 
 
 def concat_fragments(fragments: Sequence[Fragment]) -> Fragment:
-    """Join fragments of equal length along the environment axis."""
+    """Join fragments of equal length and team size along the environment axis."""
     if len(fragments) == 1:
         return fragments[0]
     cat = lambda name, axis: np.concatenate([getattr(f, name) for f in fragments], axis)
@@ -119,6 +120,7 @@ def concat_fragments(fragments: Sequence[Fragment]) -> Fragment:
         timings={k: sum(f.timings.get(k, 0.0) for f in fragments) for k in fragments[0].timings},
         extras={k: np.concatenate([f.extras[k] for f in fragments], 1) for k in fragments[0].extras},
         own=None if fragments[0].own is None else cat("own", 1),
+        num_p=fragments[0].num_p,
     )
 
 
@@ -355,4 +357,5 @@ class RolloutWorker:
             timings={"simulation": t_sim, "inference": t_inf},
             extras=extras,
             own=own,
+            num_p=self.core.num_p,
         )

@@ -39,6 +39,7 @@ from atdrone.fileio import atomic_write_bytes
 from atdrone.learn.learner import Learner, LearnerSpec, check_device
 from atdrone.learn.ppo import PPOConfig, ppo_config, ppo_document, saved_ppo_document
 from atdrone.learn.rollout import RolloutWorker
+from atdrone.learn.sizes import MixedSizeWorker, check_sizes, make_worker
 from atdrone.models import build_model
 from atdrone.models.checkpoint import save_checkpoint
 from atdrone.models.networks import ActorCritic
@@ -149,6 +150,7 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
             raise ConfigError("protocol", str(exc)) from None
         slots = task.players.num_ctrl if cfg.mode == "best_response" else task.players.num_p
         check_split(protocol.split, slots, "protocol")
+        check_sizes(protocol.sizes, task, cfg.mode == "best_response", "protocol")
     return cfg
 
 
@@ -220,7 +222,7 @@ class Trainer:
         self.history: list[dict[str, float]] = []
         self.run_id: str | None = None
 
-    def _fresh_worker(self, updates: int) -> RolloutWorker:
+    def _fresh_worker(self, updates: int) -> RolloutWorker | MixedSizeWorker:
         """The rollout worker of the stretch that starts after ``updates`` updates: new environments, seeded
         from (seed, updates), so a run resumed from a save collects exactly what the uninterrupted run did
         (each save starts the next stretch in both)."""
@@ -230,11 +232,12 @@ class Trainer:
             else int(np.random.SeedSequence([self.cfg.seed, updates]).generate_state(1)[0])
         )
         protocol = load_protocol(self.cfg.protocol) if self.cfg.protocol else None
-        return RolloutWorker(
+        return make_worker(
             self.task,
             seed,
             self.model.architecture(),
             self.ppo,
+            sizes=protocol.sizes if protocol is not None else None,
             partners=self.partners,
             events=protocol.plan if protocol is not None else None,
             split=protocol.split if protocol is not None else None,

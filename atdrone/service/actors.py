@@ -28,6 +28,7 @@ from atdrone.envs.events import EventPlan
 from atdrone.learn.learner import Learner, LearnerSpec
 from atdrone.learn.ppo import PPOConfig
 from atdrone.learn.rollout import Fragment, RolloutWorker
+from atdrone.learn.sizes import MixedSizeWorker, make_worker
 from atdrone.models.checkpoint import save_checkpoint
 from atdrone.policies.base import Policy
 from atdrone.policies.zoo import MemberSpec, build_policy
@@ -53,8 +54,8 @@ class PolicyCache:
 class RolloutJob:
     """One worker's part of training a learner: its seed, environments and partners.
 
-    ``partners``: the specs of ``distribution.members`` in order (empty for self-play); ``events`` and
-    ``split``: the run's protocol's team events and split of the team (None: none).
+    ``partners``: the specs of ``distribution.members`` in order (empty for self-play); ``events``, ``split``
+    and ``sizes``: the run's protocol's team events, split of the team and team sizes (None: none).
     """
 
     seed: int
@@ -66,6 +67,7 @@ class RolloutJob:
     distribution: PartnerDistribution | None = None
     events: EventPlan | None = None
     split: tuple[int, int] | None = None
+    sizes: tuple[int, int] | None = None  # pursuers per team, drawn per rollout (self-play only)
 
 
 WORKER_RESTARTS = 8  # restarts of one rollout worker in a run, and retries of one call, before the run fails
@@ -100,7 +102,7 @@ class RolloutWorkerActor:
         """Drop the run's job, environments and partner policies (what a new worker holds); (pid, node id): a
         restart changes the pid."""
         self.policies = PolicyCache()
-        self.worker: RolloutWorker | None = None
+        self.worker: RolloutWorker | MixedSizeWorker | None = None
         self.job: RolloutJob | None = None
         self.done = 0  # fragments of the job collected by this process
         return os.getpid(), ray.get_runtime_context().get_node_id()
@@ -115,11 +117,12 @@ class RolloutWorkerActor:
         sampler = None
         if job.distribution is not None:
             sampler = as_sampler(job.distribution, self.task.players.num_p - job.num_ctrl)
-        self.worker = RolloutWorker(
+        self.worker = make_worker(
             self.task,
             job.seed,
             job.architecture,
             job.ppo,
+            sizes=job.sizes,
             partners=[None if s.kind == "learner" else self.policies.get(s) for s in job.partners],
             num_ctrl=job.num_ctrl,
             sampler=sampler,

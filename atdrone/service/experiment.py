@@ -25,6 +25,7 @@ from typing import Any
 from atdrone.config import (
     OPTIONAL,
     ConfigError,
+    TaskConfig,
     check_run_name,
     check_seed,
     check_task_field,
@@ -174,20 +175,23 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
         _check_zoo(cfg.select_zoo, "select_zoo", cfg.task)
         _check_disjoint(cfg.select_zoo)
     if cfg.protocol:
-        _check_protocol(cfg.protocol, task.players.num_p)
+        _check_protocol(cfg.protocol, task, cfg.algorithm)
     return cfg
 
 
-def _check_protocol(name: str, num_p: int) -> None:
-    """ConfigError at protocol unless it loads and its split fits the task's ``num_p`` pursuer slots (a training
-    call with partners caps it at the slots its learner fills, see :meth:`Coordinator.train`)."""
+def _check_protocol(name: str, task: TaskConfig, algorithm: str) -> None:
+    """ConfigError at protocol unless it loads, its split fits the task's pursuer slots (a training call with
+    partners caps it at the slots its learner fills, see :meth:`Coordinator.train`) and its team sizes are
+    drawn by self-play (``sp``, the one algorithm without partners) on shipped task variants."""
+    from atdrone.learn.sizes import check_sizes
     from atdrone.teams.protocols import check_split, load_protocol
 
     try:
         protocol = load_protocol(name)
     except ConfigError as exc:
         raise ConfigError("protocol", str(exc)) from None
-    check_split(protocol.split, num_p, "protocol")
+    check_split(protocol.split, task.players.num_p, "protocol")
+    check_sizes(protocol.sizes, task, algorithm != "sp", "protocol")
 
 
 def _check_disjoint(zoo: str) -> None:

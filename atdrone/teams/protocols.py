@@ -16,9 +16,13 @@ after the drop before it); ``slots`` which slots it may hit: "partners" (default
 A training protocol may also draw the split of the team: ``"learners": [lo, hi]``, how
 many of its slots the learner flies in each episode (uniform in lo..hi, at most the
 slots its training mode gives it); the mode's partners fly the others, and those
-drone-steps are not trained on (:class:`~atdrone.teams.match.Match`). With a split the
-events may be left out. Evaluation plays every split itself (``atdrone evaluate
---splits``), so a protocol with a split is for training only.
+drone-steps are not trained on (:class:`~atdrone.teams.match.Match`). It may draw the
+team's size too: ``"sizes": [lo, hi]``, pursuers per team (the task's variants
+``<P>p<E>e<O>o`` for P in lo..hi must ship), drawn for each rollout
+(:mod:`atdrone.learn.sizes`; self-play training only: partners are built for one size).
+With a split or sizes the events may be left out. Evaluation plays every split and size
+itself (``atdrone evaluate --splits``, a task variant), so a protocol with a split or
+sizes is for training only.
 
 The metrics of an episode with events split at the first event that happened:
   EVT      % of episodes that lived to their first event;
@@ -58,6 +62,7 @@ class Protocol:
     plan: EventPlan
     description: str = ""
     split: tuple[int, int] | None = None  # the "learners" range: slots the learner flies, drawn per episode
+    sizes: tuple[int, int] | None = None  # the "sizes" range: pursuers per team, drawn per rollout
 
     def to_dict(self) -> dict[str, Any]:
         """The document's form (what a run records)."""
@@ -65,6 +70,8 @@ class Protocol:
         doc: dict[str, Any] = {"name": self.name, "zoo": self.zoo, "description": self.description, "events": events}
         if self.split is not None:
             doc["learners"] = list(self.split)
+        if self.sizes is not None:
+            doc["sizes"] = list(self.sizes)
         return doc
 
 
@@ -74,8 +81,8 @@ def protocol_names() -> tuple[str, ...]:
 
 
 def is_protocol(name_or_path: str | Path) -> bool:
-    """Whether ``name_or_path`` names a shipped protocol or a JSON file holding one (it has "events" or
-    "learners")."""
+    """Whether ``name_or_path`` names a shipped protocol or a JSON file holding one (it has "events",
+    "learners" or "sizes")."""
     text = str(name_or_path)
     if text in protocol_names():
         return True
@@ -83,7 +90,7 @@ def is_protocol(name_or_path: str | Path) -> bool:
     if path.suffix != ".json" or not path.is_file():
         return False
     document = read_json(path)
-    return isinstance(document, dict) and ("events" in document or "learners" in document)
+    return isinstance(document, dict) and bool({"events", "learners", "sizes"} & set(document))
 
 
 def zoo_of(name: str) -> tuple[str, EventPlan | None]:
@@ -105,9 +112,15 @@ def check_split(split: tuple[int, int] | None, slots: int, path: str) -> None:
 
 
 def evaluation_protocol(name_or_path: str | Path | Protocol) -> Protocol:
-    """:func:`load_protocol` for evaluation: ConfigError for a protocol that draws the team's split (training only;
-    evaluation plays every split itself, ``atdrone evaluate --splits``)."""
+    """:func:`load_protocol` for evaluation: ConfigError for a protocol that draws the team's split or size
+    (training only; evaluation plays every split itself, ``atdrone evaluate --splits``, and a size as its task)."""
     protocol = load_protocol(name_or_path)
+    if protocol.sizes is not None:
+        raise ConfigError(
+            "sizes",
+            f"protocol {protocol.name!r} draws the team's size, which only training does "
+            "(evaluate on a task variant instead, e.g. --task 6p2e1o)",
+        )
     if protocol.split is not None:
         raise ConfigError(
             "learners",
@@ -132,23 +145,16 @@ def parse_protocol(document: Any, fallback_name: str = "") -> Protocol:
     """A protocol from its parsed document (see the module docstring)."""
     if not isinstance(document, dict):
         raise ConfigError("", "a protocol document is a JSON object")
-    unknown = set(document) - {"name", "zoo", "description", "events", "learners"}
+    unknown = set(document) - {"name", "zoo", "description", "events", "learners", "sizes"}
     if unknown:
-        raise ConfigError(sorted(unknown)[0], "unknown key (known: name, zoo, description, events, learners)")
+        raise ConfigError(sorted(unknown)[0], "unknown key (known: name, zoo, description, events, learners, sizes)")
     zoo = document.get("zoo")
     if not isinstance(zoo, str) or not zoo:
         raise ConfigError("zoo", "the zoo the partners come from (e.g. zoo3) is required")
-    split = document.get("learners")
-    if split is not None and not (
-        isinstance(split, list)
-        and len(split) == 2
-        and all(isinstance(k, int) and not isinstance(k, bool) for k in split)
-        and 1 <= split[0] <= split[1]
-    ):
-        raise ConfigError("learners", f"must be [low, high] integers, 1 <= low <= high, got {split!r}")
-    raw = document.get("events", [] if split is not None else None)
-    if not isinstance(raw, list) or (not raw and split is None):
-        raise ConfigError("events", "a non-empty list of events is required (or a learners range)")
+    split, sizes = _range(document, "learners", 1), _range(document, "sizes", 2)
+    raw = document.get("events", [] if split is not None or sizes is not None else None)
+    if not isinstance(raw, list) or (not raw and split is None and sizes is None):
+        raise ConfigError("events", "a non-empty list of events is required (or a learners or sizes range)")
     specs = []
     for i, entry in enumerate(raw):
         where = f"events[{i}]"
@@ -182,8 +188,24 @@ def parse_protocol(document: Any, fallback_name: str = "") -> Protocol:
         zoo=zoo,
         plan=EventPlan(tuple(specs)),
         description=str(document.get("description", "")),
-        split=None if split is None else (split[0], split[1]),
+        split=split,
+        sizes=sizes,
     )
+
+
+def _range(document: dict[str, Any], key: str, low: int) -> tuple[int, int] | None:
+    """A document's optional ``[lo, hi]`` integer range at ``key`` (``low`` <= lo <= hi); ConfigError else."""
+    value = document.get(key)
+    if value is None:
+        return None
+    if not (
+        isinstance(value, list)
+        and len(value) == 2
+        and all(isinstance(k, int) and not isinstance(k, bool) for k in value)
+        and low <= value[0] <= value[1]
+    ):
+        raise ConfigError(key, f"must be [low, high] integers, {low} <= low <= high, got {value!r}")
+    return value[0], value[1]
 
 
 def event_counts(records: pd.DataFrame) -> tuple[dict[str, tuple[int, int]], np.ndarray]:

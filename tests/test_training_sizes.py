@@ -1,0 +1,204 @@
+"""Team sizes drawn in training: a protocol's ``sizes`` range.
+
+Each rollout is played at a size drawn from the range, on the task's shipped variant
+with that many pursuers; the environments of a size keep their episodes between its
+rollouts; the PPO update takes each size's samples in minibatches of their own. Without
+sizes the update is as before, bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from atdrone.config import ConfigError, load_task
+from atdrone.learn.learner import Learner, LearnerSpec
+from atdrone.learn.ppo import PRESETS, architecture, minibatches, ppo_update
+from atdrone.learn.rollout import RolloutWorker
+from atdrone.learn.sizes import MixedSizeWorker, make_worker, size_seed, size_tasks
+from atdrone.learn.trainer import load_train_config
+from atdrone.policies.rules import GreedyPolicy
+from atdrone.service.experiment import load_experiment
+from atdrone.teams.evaluation import evaluate
+from atdrone.teams.protocols import is_protocol, load_protocol, parse_protocol, zoo_of
+
+TASK = "4p2e1o"
+PPO = replace(PRESETS["default"], num_envs=8, rollout_steps=16, minibatch_size=64, epochs=2, entity_dim=8, hidden=16)
+ARCH = architecture(PPO)
+
+
+def _doc(tmp_path: Path, **doc: object) -> str:
+    path = tmp_path / "sizes.json"
+    path.write_text(json.dumps({"name": "sized", "zoo": "zoo3", **doc}))
+    return str(path)
+
+
+def _learner(seed: int = 0) -> Learner:
+    return Learner(LearnerSpec(PPO, 2, 4, seed, 10.0, architecture=ARCH))
+
+
+def test_a_protocol_may_draw_team_sizes_and_is_then_for_training_only(tmp_path: Path) -> None:
+    protocol = parse_protocol({"zoo": "zoo3", "sizes": [3, 6]}, "s")
+    assert protocol.sizes == (3, 6) and protocol.split is None and not len(protocol.plan)
+    assert protocol.to_dict()["sizes"] == [3, 6]
+    assert load_protocol("sizes3-6").sizes == (3, 6)  # the shipped one
+    assert "sizes" not in load_protocol("zoo3+swap").to_dict()
+    for bad in ([1, 3], [4, 3], [3], "3-6", [3, True]):
+        with pytest.raises(ConfigError, match="sizes"):
+            parse_protocol({"zoo": "zoo3", "sizes": bad}, "s")
+    path = _doc(tmp_path, sizes=[3, 5])
+    assert is_protocol(path)
+    with pytest.raises(ConfigError, match=r"sizes.*only training"):
+        zoo_of(path)
+    with pytest.raises(ConfigError, match=r"sizes.*only training"):
+        evaluate(GreedyPolicy(), TASK, "zoo1", episodes=2, protocol=path)
+
+
+def test_the_sizes_are_the_tasks_shipped_variants_and_a_missing_one_is_named() -> None:
+    tasks = size_tasks(load_task(TASK), (3, 6))
+    assert [t.players.num_p for t in tasks] == [3, 4, 5, 6]
+    assert [t.name for t in tasks] == ["3p2e1o", "4p2e1o", "5p2e1o", "6p2e1o"]
+    assert {(t.players.num_e, len(t.site.obstacles)) for t in tasks} == {(2, 1)}
+    with pytest.raises(ConfigError, match=r"no task variant 3p2e5o"):
+        size_tasks(load_task("4p2e5o"), (3, 4))
+
+
+def test_each_rollout_is_played_at_a_drawn_size_and_a_worker_repeats_from_its_seed() -> None:
+    weights = _learner().get_weights()
+    runs = []
+    for _ in range(2):
+        worker = make_worker(load_task(TASK), 3, ARCH, PPO, sizes=(3, 6))
+        assert isinstance(worker, MixedSizeWorker)
+        worker.set_weights(weights)
+        runs.append([worker.collect(8) for _ in range(12)])
+    first, again = runs
+    assert {f.num_p for f in first} == {3, 4, 5, 6}  # every size drawn in 12 rollouts (this seed)
+    for f, g in zip(first, again, strict=True):
+        assert f.num_p == g.num_p and np.array_equal(f.obs, g.obs) and np.array_equal(f.rewards, g.rewards)
+        assert f.obs.shape == (8, 8, f.num_p, 4 * (f.num_p + 2))  # every pursuer a learner; its teammates seen
+        assert {len(e["partners"]) for e in f.episodes} <= {0}  # self-play: no partner drawn
+
+
+def test_the_environments_of_a_size_keep_their_episodes_between_its_rollouts() -> None:
+    """Two rollouts at one size continue the same episodes: their steps as one longer rollout's."""
+    three = size_tasks(load_task(TASK), (3, 3))
+    worker = MixedSizeWorker(three, 5, ARCH, PPO)
+    single = RolloutWorker(three[0], size_seed(5, 3), ARCH, PPO)
+    weights = _learner().get_weights()
+    for w in (worker, single):
+        w.set_weights(weights)
+    single.generator = torch.Generator().manual_seed(5 + 2)  # the mixed worker's shared noise
+    parts = [worker.collect(8) for _ in range(2)]
+    whole = single.collect(16)
+    assert np.array_equal(np.concatenate([p.obs for p in parts]), whole.obs)
+    assert np.array_equal(np.concatenate([p.dones for p in parts]), whole.dones)
+
+
+def test_minibatches_are_each_of_one_group_and_one_group_is_shuffled_as_before() -> None:
+    g = torch.Generator().manual_seed(0)
+    taken = minibatches([5, 3], 2, g)
+    assert sorted(len(idx) for _, idx in taken) == [2, 2, 2]  # 5 -> 2 + 2 (one left out), 3 -> 2 (one left out)
+    for group in (0, 1):
+        seen = torch.cat([idx for k, idx in taken if k == group])
+        assert len(set(seen.tolist())) == len(seen) and seen.max() < (5, 3)[group]
+    one, old = (
+        minibatches([10], 4, torch.Generator().manual_seed(1)),
+        torch.randperm(10, generator=torch.Generator().manual_seed(1)),
+    )
+    assert [idx.tolist() for _, idx in one] == [old[0:4].tolist(), old[4:8].tolist()]
+
+
+def test_an_update_over_two_sizes_trains_on_each_and_one_size_is_the_plain_update() -> None:
+    worker = make_worker(load_task(TASK), 3, ARCH, PPO, sizes=(3, 6))
+    learner = _learner()
+    worker.set_weights(learner.get_weights())
+    frags = [worker.collect(16) for _ in range(4)]
+    assert len({f.num_p for f in frags}) > 1
+    before = {k: v.clone() for k, v in learner.get_weights().items()}
+    stats = learner.update(frags)
+    assert stats["train/samples"] == sum(f.u.size for f in frags)
+    assert stats["train/team_size"] == pytest.approx(sum(f.num_p * f.u.size for f in frags) / stats["train/samples"])
+    assert any(not torch.equal(before[k], v) for k, v in learner.get_weights().items())
+    # one size given as a (pursuers, batch) list: the same update as the plain batch, bit for bit
+    frag = frags[0]
+    results = []
+    for batch in (frag.batch(0.99, 0.95), [(frag.num_p, frag.batch(0.99, 0.95))]):
+        model = _learner(1).model
+        opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+        ppo_update(model, opt, batch, PPO, 2, frag.num_p, torch.Generator().manual_seed(2))  # type: ignore[arg-type]
+        results.append(model.state_dict())
+    assert all(torch.equal(results[0][k], results[1][k]) for k in results[0])
+
+
+def test_sizes_are_refused_where_training_has_partners(tmp_path: Path) -> None:
+    path = _doc(tmp_path, sizes=[3, 6])
+    doc = {"name": "t", "task": TASK, "out_dir": str(tmp_path), "protocol": path}
+    assert load_train_config(doc).protocol  # self-play
+    assert load_train_config({**doc, "mode": "mappo"}).protocol
+    with pytest.raises(ConfigError, match=r"protocol\.sizes: .*self-play"):
+        load_train_config({**doc, "mode": "best_response", "zoo": "zoo1"})
+    with pytest.raises(ConfigError, match=r"protocol\.sizes: no task variant"):
+        load_train_config({**doc, "task": "4p2e5o"})
+    experiment = {"name": "e", "task": TASK, "out_dir": str(tmp_path), "protocol": path, "gif": False}
+    assert load_experiment({**experiment, "algorithm": "sp"}).protocol
+    for algorithm in ("hola", "pbt", "mappo", "fcp"):
+        with pytest.raises(ConfigError, match=r"protocol\.sizes: .*self-play"):
+            load_experiment({**experiment, "algorithm": algorithm})
+
+
+def test_the_service_trains_self_play_at_drawn_sizes_and_records_the_protocol(
+    local_ray: str, tmp_path: Path, mlflow_store: Any
+) -> None:
+    """A tiny sp run on the session's Ray with teams of 3 to 6: its two workers' rollouts are played at drawn
+    sizes (each update's mean team size is logged), and the registry's member tags and MLflow record it."""
+    import mlflow
+
+    from atdrone.registry import Registry
+    from atdrone.service.driver import run_experiment
+
+    cfg = load_experiment(
+        {
+            "name": "sized",
+            "algorithm": "sp",
+            "task": TASK,
+            "generations": 1,
+            "updates_per_generation": 3,
+            "num_workers": 2,
+            "eval_episodes": 4,
+            "final_zoo": "zoo1",
+            "final_episodes": 4,
+            "gif": False,
+            "out_dir": str(tmp_path),
+            "protocol": "sizes3-6",
+            "ppo": {
+                "epochs": 1,
+                "entity_dim": 8,
+                "hidden": 16,
+                "minibatch_size": 64,
+                "num_envs": 8,
+                "rollout_steps": 16,
+            },
+        }
+    )
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    (report,) = run_experiment(cfg, tracking_uri=uri, progress=False)["reports"]
+    (trained,) = report.training
+    assert trained.env_steps == 3 * 8 * 16
+    sizes = [h["train/team_size"] for h in trained.history]  # each update's mean pursuers per sample
+    assert len(set(sizes)) > 1 and all(3 <= m <= 6 for m in sizes), sizes  # drawn per rollout, 3 to 6
+    assert trained.samples == sum(h["train/samples"] for h in trained.history)
+    (tags,) = Registry(tmp_path / "sized" / "registry.db").members(run="sized")["tags"]
+    assert tags["protocol"]["sizes"] == [3, 6]
+    client = mlflow.MlflowClient(uri)
+    experiment = client.get_experiment_by_name("sized")
+    assert experiment is not None
+    runs = client.search_runs([experiment.experiment_id])
+    assert {r.data.tags.get("atdrone.protocol") for r in runs if not r.data.tags.get("mlflow.parentRunId")} == {
+        "sizes3-6"
+    }
