@@ -17,15 +17,17 @@ import numpy as np
 import pytest
 import torch
 
-from atdrone.config import ConfigError, load_task
+from atdrone.config import ConfigError, TaskConfig, load_task
 from atdrone.learn.learner import Learner, LearnerSpec
 from atdrone.learn.ppo import PRESETS, architecture, minibatches, ppo_update
 from atdrone.learn.rollout import RolloutWorker
 from atdrone.learn.sizes import MixedSizeWorker, make_worker, size_seed, size_tasks
 from atdrone.learn.trainer import load_train_config
+from atdrone.policies.base import Policy
 from atdrone.policies.rules import GreedyPolicy
 from atdrone.service.experiment import load_experiment
 from atdrone.teams.evaluation import evaluate
+from atdrone.teams.partners import Uniform, profiles
 from atdrone.teams.protocols import is_protocol, load_protocol, parse_protocol, zoo_of
 
 TASK = "4p2e1o"
@@ -136,27 +138,61 @@ def test_an_update_over_two_sizes_trains_on_each_and_one_size_is_the_plain_updat
     assert all(torch.equal(results[0][k], results[1][k]) for k in results[0])
 
 
-def test_sizes_are_refused_where_training_has_partners(tmp_path: Path) -> None:
+def test_with_partners_the_learner_keeps_its_slots_and_partners_fill_the_others() -> None:
+    """Best-response style: 2 learner slots, the zoo's drones in 1 to 4 partner slots by size, each size with
+    policies of its own; a profile distribution (HOLA-Drone V2's) fills a fixed count and is refused."""
+    made: list[int] = []
+
+    def partners(task: TaskConfig) -> list[Policy | None]:
+        made.append(task.players.num_p)
+        return [GreedyPolicy(), None]  # a zoo drone and a copy of the learner
+
+    worker = make_worker(
+        load_task(TASK), 4, ARCH, PPO, sizes=(3, 6), partners=partners, num_ctrl=2, distribution=Uniform(("a", "b"))
+    )
+    assert isinstance(worker, MixedSizeWorker) and made == [3, 4, 5, 6]
+    worker.set_weights(_learner().get_weights())
+    frags = [worker.collect(8) for _ in range(10)]
+    assert {f.num_p for f in frags} == {3, 4, 5, 6}
+    for f in frags:
+        assert f.u.shape == (8, 8, 2) and f.extras["partner_members"].shape == (8, 8, f.num_p - 2)
+        assert f.obs.shape[-1] == 4 * (f.num_p + 2)
+    with pytest.raises(ConfigError, match="fixed number of slots"):
+        make_worker(
+            load_task(TASK),
+            4,
+            ARCH,
+            PPO,
+            sizes=(3, 6),
+            partners=partners,
+            num_ctrl=2,
+            distribution=profiles({("a", "b"): 1.0}),
+        )
+    with pytest.raises(ConfigError, match="no partner slot"):
+        make_worker(load_task(TASK), 4, ARCH, PPO, sizes=(3, 6), partners=partners, num_ctrl=3)
+
+
+def test_sizes_are_refused_where_the_training_cannot_draw_them(tmp_path: Path) -> None:
     path = _doc(tmp_path, sizes=[3, 6])
     doc = {"name": "t", "task": TASK, "out_dir": str(tmp_path), "protocol": path}
-    assert load_train_config(doc).protocol  # self-play
-    assert load_train_config({**doc, "mode": "mappo"}).protocol
-    with pytest.raises(ConfigError, match=r"protocol\.sizes: .*self-play"):
-        load_train_config({**doc, "mode": "best_response", "zoo": "zoo1"})
+    for mode in ({}, {"mode": "mappo"}, {"mode": "best_response", "zoo": "zoo1"}):
+        assert load_train_config({**doc, **mode}).protocol
     with pytest.raises(ConfigError, match=r"protocol\.sizes: no task variant"):
         load_train_config({**doc, "task": "4p2e5o"})
     experiment = {"name": "e", "task": TASK, "out_dir": str(tmp_path), "protocol": path, "gif": False}
-    assert load_experiment({**experiment, "algorithm": "sp"}).protocol
-    for algorithm in ("hola", "pbt", "mappo", "fcp"):
-        with pytest.raises(ConfigError, match=r"protocol\.sizes: .*self-play"):
+    for algorithm in ("sp", "pbt", "mappo", "fcp", "naht_d_no_dec"):
+        assert load_experiment({**experiment, "algorithm": algorithm}).protocol
+    for algorithm, why in (("hola", "partner profiles"), ("hola_no_g", "partner profiles"), ("naht_d", "decoder")):
+        with pytest.raises(ConfigError, match=rf"protocol\.sizes: team sizes cannot be drawn here: .*{why}"):
             load_experiment({**experiment, "algorithm": algorithm})
 
 
-def test_the_service_trains_self_play_at_drawn_sizes_and_records_the_protocol(
+def test_the_service_trains_a_best_response_at_drawn_sizes_and_records_the_protocol(
     local_ray: str, tmp_path: Path, mlflow_store: Any
 ) -> None:
-    """A tiny sp run on the session's Ray with teams of 3 to 6: its two workers' rollouts are played at drawn
-    sizes (each update's mean team size is logged), and the registry's member tags and MLflow record it."""
+    """A tiny best response to Zoo 1 on the session's Ray with teams of 3 to 6: its two workers' rollouts are
+    played at drawn sizes, the learner in its 2 slots, Zoo 1's drones in the 1 to 4 others (each update's mean
+    team size is logged); the registry's member tags and MLflow record the protocol."""
     import mlflow
 
     from atdrone.registry import Registry
@@ -165,7 +201,8 @@ def test_the_service_trains_self_play_at_drawn_sizes_and_records_the_protocol(
     cfg = load_experiment(
         {
             "name": "sized",
-            "algorithm": "sp",
+            "algorithm": "br",
+            "br": {"zoo": "zoo1"},
             "task": TASK,
             "generations": 1,
             "updates_per_generation": 3,
@@ -192,7 +229,9 @@ def test_the_service_trains_self_play_at_drawn_sizes_and_records_the_protocol(
     assert trained.env_steps == 3 * 8 * 16
     sizes = [h["train/team_size"] for h in trained.history]  # each update's mean pursuers per sample
     assert len(set(sizes)) > 1 and all(3 <= m <= 6 for m in sizes), sizes  # drawn per rollout, 3 to 6
-    assert trained.samples == sum(h["train/samples"] for h in trained.history)
+    assert trained.samples == 2 * trained.env_steps  # the learner's 2 slots at every size
+    drawn = {len(profile.split("|")) for profile in trained.drawn}  # partners per episode: the size's free slots
+    assert len(drawn) > 1 and drawn <= {1, 2, 3, 4}, trained.drawn
     (tags,) = Registry(tmp_path / "sized" / "registry.db").members(run="sized")["tags"]
     assert tags["protocol"]["sizes"] == [3, 6]
     client = mlflow.MlflowClient(uri)

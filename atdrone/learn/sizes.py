@@ -9,14 +9,20 @@ uniformly from its own seeded generator, so a replayed job draws the same sizes.
 entity networks pool teammates, so one network acts in every size; the PPO update takes
 each size's samples in minibatches of their own (:func:`~atdrone.learn.ppo.ppo_update`).
 
-Self-play only: partner policies are built for one team size, so a protocol with sizes is
-refused where training has partners (:func:`check_sizes`).
+With partners, the learner keeps its slots and partners fill the others: a team of P
+pursuers has P - num_ctrl partner slots, each drawn from the training's distribution
+(uniform, weighted, a variable count: per slot, so at any count), and every size gets
+partner policies of its own (they keep per-drone memory), which act in a team of any size
+(they read the evader count off the arena). A distribution of whole partner profiles
+(HOLA-Drone V2's) fills a fixed number of slots and is refused (:func:`check_sizes`), as
+is a teammate model with a decoder (NAHT-D's predicts a fixed number of teammates).
 """
 
 from __future__ import annotations
 
 import re
 from collections import Counter
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -26,6 +32,10 @@ from atdrone.config import CONFIG_DIR, ConfigError, TaskConfig, load_task
 from atdrone.envs.events import EventPlan
 from atdrone.learn.ppo import PPOConfig
 from atdrone.learn.rollout import Fragment, RolloutWorker
+from atdrone.policies.base import Policy
+from atdrone.teams.partners import PartnerDistribution, Profiles, as_sampler
+
+PartnerSource = Callable[[TaskConfig], Sequence[Policy | None]]  # fresh partner policies for a team size
 
 _NAME = re.compile(r"^(\d+)p(\d+e\d+o)$")
 
@@ -50,15 +60,13 @@ def size_tasks(task: TaskConfig, sizes: tuple[int, int], path: str = "protocol.s
     return out
 
 
-def check_sizes(sizes: tuple[int, int] | None, task: TaskConfig, with_partners: bool, path: str) -> None:
-    """ConfigError at ``path`` when a protocol's sizes cannot be trained: partners in the team, or a missing
-    task variant."""
+def check_sizes(sizes: tuple[int, int] | None, task: TaskConfig, refused: str, path: str) -> None:
+    """ConfigError at ``path`` when a protocol's sizes cannot be trained: ``refused`` says why this training
+    cannot draw sizes ("" when it can), or a task variant is missing."""
     if sizes is None:
         return
-    if with_partners:
-        raise ConfigError(
-            f"{path}.sizes", "team sizes are drawn in self-play training only (partners are built for one size)"
-        )
+    if refused:
+        raise ConfigError(f"{path}.sizes", f"team sizes cannot be drawn here: {refused}")
     size_tasks(task, sizes, f"{path}.sizes")
 
 
@@ -70,27 +78,48 @@ def size_seed(seed: int, pursuers: int) -> int:
 class MixedSizeWorker:
     """One rollout worker per team size, the size of every rollout drawn (see the module docstring).
 
-    The arguments are :class:`~atdrone.learn.rollout.RolloutWorker`'s for self-play; ``split``
-    is capped at each size's pursuers. The workers share one action-noise generator
-    (:attr:`generator`, which a service worker reseeds per fragment).
+    The arguments are :class:`~atdrone.learn.rollout.RolloutWorker`'s, but ``partners`` makes
+    each size's partner policies and ``distribution`` draws them (None: uniform per slot);
+    ``num_ctrl`` (the learner's slots) applies with partners, self-play fills every slot;
+    ``split`` is capped at each size's learner slots. The workers share one action-noise
+    generator (:attr:`generator`, which a service worker reseeds per fragment).
     """
 
     def __init__(
         self,
-        tasks: list[TaskConfig],
+        tasks: Sequence[TaskConfig],
         seed: int,
         architecture: dict[str, Any],
         ppo: PPOConfig,
+        partners: PartnerSource | None = None,
+        num_ctrl: int | None = None,
+        distribution: PartnerDistribution | None = None,
         num_envs: int | None = None,
         events: EventPlan | None = None,
         split: tuple[int, int] | None = None,
     ) -> None:
+        if isinstance(distribution, Profiles):
+            raise ConfigError("protocol.sizes", "whole partner profiles fill a fixed number of slots, one team size")
         self.workers: dict[int, RolloutWorker] = {}
         for task in tasks:
             p = task.players.num_p
-            capped = None if split is None else (min(split[0], p), min(split[1], p))
+            team = list(partners(task)) if partners is not None else []
+            ctrl = (task.players.num_ctrl if num_ctrl is None else num_ctrl) if team else p
+            if team and ctrl >= p:
+                raise ConfigError("protocol.sizes", f"a team of {p} leaves no partner slot beside {ctrl} learners")
+            capped = None if split is None else (min(split[0], ctrl), min(split[1], ctrl))
+            sampler = as_sampler(distribution, p - ctrl) if team and distribution is not None else None
             self.workers[p] = RolloutWorker(
-                task, size_seed(seed, p), architecture, ppo, num_envs=num_envs, events=events, split=capped
+                task,
+                size_seed(seed, p),
+                architecture,
+                ppo,
+                partners=team,
+                num_ctrl=ctrl if team else None,
+                sampler=sampler,
+                num_envs=num_envs,
+                events=events,
+                split=capped,
             )
         self.generator = torch.Generator().manual_seed(seed + 2)
         for worker in self.workers.values():
@@ -124,13 +153,16 @@ def make_worker(
     architecture: dict[str, Any],
     ppo: PPOConfig,
     sizes: tuple[int, int] | None = None,
+    partners: PartnerSource | None = None,
+    num_ctrl: int | None = None,
+    distribution: PartnerDistribution | None = None,
     **kwargs: Any,
 ) -> RolloutWorker | MixedSizeWorker:
-    """A rollout worker, or with ``sizes`` a :class:`MixedSizeWorker` over the task's variants (self-play: no
-    partners, ``kwargs`` among num_envs, events and split)."""
-    if sizes is None:
-        return RolloutWorker(task, seed, architecture, ppo, **kwargs)
-    if kwargs.get("partners") or kwargs.get("sampler") is not None:
-        raise ConfigError("protocol.sizes", "team sizes are drawn in self-play training only")
-    kwargs = {k: v for k, v in kwargs.items() if k in ("num_envs", "events", "split")}
-    return MixedSizeWorker(size_tasks(task, sizes), seed, architecture, ppo, **kwargs)
+    """A rollout worker of ``task`` (``partners(task)`` its partner policies, drawn from ``distribution``), or with
+    ``sizes`` a :class:`MixedSizeWorker` over the task's variants; ``kwargs`` among num_envs, events and split."""
+    if sizes is not None:
+        tasks = size_tasks(task, sizes)
+        return MixedSizeWorker(tasks, seed, architecture, ppo, partners, num_ctrl, distribution, **kwargs)
+    team = list(partners(task)) if partners is not None else []
+    sampler = as_sampler(distribution, task.players.num_p - num_ctrl) if distribution and num_ctrl else None
+    return RolloutWorker(task, seed, architecture, ppo, partners=team, num_ctrl=num_ctrl, sampler=sampler, **kwargs)

@@ -26,6 +26,7 @@ import torch
 from atdrone.config import (
     OPTIONAL,
     ConfigError,
+    TaskConfig,
     check_run_name,
     check_seed,
     check_task_field,
@@ -150,7 +151,7 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
             raise ConfigError("protocol", str(exc)) from None
         slots = task.players.num_ctrl if cfg.mode == "best_response" else task.players.num_p
         check_split(protocol.split, slots, "protocol")
-        check_sizes(protocol.sizes, task, cfg.mode == "best_response", "protocol")
+        check_sizes(protocol.sizes, task, "", "protocol")
     return cfg
 
 
@@ -238,10 +239,17 @@ class Trainer:
             self.model.architecture(),
             self.ppo,
             sizes=protocol.sizes if protocol is not None else None,
-            partners=self.partners,
+            partners=self._partners,
             events=protocol.plan if protocol is not None else None,
             split=protocol.split if protocol is not None else None,
         )
+
+    def _partners(self, task: TaskConfig) -> list[Policy]:
+        """The partner policies of a team of ``task``'s size: the zoo's, loaded once more for each other size
+        (a policy keeps per-drone memory)."""
+        if task.players.num_p == self.task.players.num_p or self.cfg.mode != "best_response":
+            return list(self.partners)
+        return list(load_zoo(self.cfg.zoo, self.cfg.task).policies())
 
     def _start_from(self, checkpoint: str) -> None:
         """Take a checkpoint's weights: the same architecture, or a narrower one widened with zero weights."""

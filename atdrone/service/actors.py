@@ -34,7 +34,7 @@ from atdrone.policies.base import Policy
 from atdrone.policies.zoo import MemberSpec, build_policy
 from atdrone.teams.evaluation import metrics, run_episodes
 from atdrone.teams.lineups import evaluate_lineups
-from atdrone.teams.partners import PartnerDistribution, as_sampler
+from atdrone.teams.partners import PartnerDistribution
 
 
 class PolicyCache:
@@ -43,8 +43,9 @@ class PolicyCache:
     def __init__(self) -> None:
         self._cache: dict[tuple, Policy] = {}
 
-    def get(self, spec: MemberSpec) -> Policy:
-        key = (spec.name, spec.kind, spec.checkpoint, tuple(sorted(spec.params.items())))
+    def get(self, spec: MemberSpec, copy: int = 0) -> Policy:
+        """The policy of ``spec``; another ``copy`` number gets a policy of its own (one per team size)."""
+        key = (spec.name, spec.kind, spec.checkpoint, tuple(sorted(spec.params.items())), copy)
         if key not in self._cache:
             self._cache[key] = build_policy(spec)
         return self._cache[key]
@@ -114,18 +115,20 @@ class RolloutWorkerActor:
         """Begin a training job: fresh environments, seeded by the job."""
         self.job = job
         self.done = 0
-        sampler = None
-        if job.distribution is not None:
-            sampler = as_sampler(job.distribution, self.task.players.num_p - job.num_ctrl)
+
+        def partners(task: TaskConfig) -> list[Policy | None]:  # each other team size its own policies (memory)
+            copy = 0 if task.players.num_p == self.task.players.num_p else task.players.num_p
+            return [None if s.kind == "learner" else self.policies.get(s, copy) for s in job.partners]
+
         self.worker = make_worker(
             self.task,
             job.seed,
             job.architecture,
             job.ppo,
             sizes=job.sizes,
-            partners=[None if s.kind == "learner" else self.policies.get(s) for s in job.partners],
+            partners=partners,
             num_ctrl=job.num_ctrl,
-            sampler=sampler,
+            distribution=job.distribution,
             num_envs=job.num_envs,
             events=job.events,
             split=job.split,

@@ -35,7 +35,7 @@ import ray
 from ray.util.placement_group import PlacementGroup, placement_group, placement_group_table, remove_placement_group
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from atdrone.config import ConfigError, TaskConfig, load_task
+from atdrone.config import TaskConfig, load_task
 from atdrone.learn.learner import LearnerSpec
 from atdrone.learn.ppo import ppo_config
 from atdrone.models.checkpoint import load_checkpoint
@@ -336,8 +336,6 @@ class Coordinator:
         if self.protocol is not None:  # a split asks for at most the slots this training gives its learner
             events, split, sizes = self.protocol.plan, self.protocol.split, self.protocol.sizes
             split = None if split is None else (min(split[0], num_ctrl), min(split[1], num_ctrl))
-            if sizes is not None and partners is not None:
-                raise ConfigError("protocol.sizes", "team sizes are drawn in self-play training only")
         jobs = [
             ray.put(
                 RolloutJob(

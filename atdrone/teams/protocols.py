@@ -19,7 +19,7 @@ slots its training mode gives it); the mode's partners fly the others, and those
 drone-steps are not trained on (:class:`~atdrone.teams.match.Match`). It may draw the
 team's size too: ``"sizes": [lo, hi]``, pursuers per team (the task's variants
 ``<P>p<E>e<O>o`` for P in lo..hi must ship), drawn for each rollout
-(:mod:`atdrone.learn.sizes`; self-play training only: partners are built for one size).
+(:mod:`atdrone.learn.sizes`: the learner keeps its slots, partners fill the others).
 With a split or sizes the events may be left out. Evaluation plays every split and size
 itself (``atdrone evaluate --splits``, a task variant), so a protocol with a split or
 sizes is for training only.
