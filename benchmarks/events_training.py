@@ -40,7 +40,7 @@ PROTOCOLS = ("zoo3", "zoo3+swap", "zoo3+drop", "zoo3+drop+join")
 METRICS = ("SUC", "SUC_post", "COL", "REC")
 
 
-def _write(path: Path, data: object) -> None:
+def write_json(path: Path, data: object) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(data, indent=1) + "\n")
 
@@ -62,7 +62,7 @@ def train(recipe: str, task: str, seed: int) -> Path:
         print(f"[events] training {name} on {task}", flush=True)
         with (RUNS / recipe / "train.log").open("a") as log:
             subprocess.run(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, check=True)
-        _write(done, {"wall_s_last_attempt": round(time.time() - start, 1)})
+        write_json(done, {"wall_s_last_attempt": round(time.time() - start, 1)})
     return run / "last.pt"
 
 
@@ -96,7 +96,7 @@ def evaluate_cell(variant: str, task: str, seed: int, protocol: str, episodes: i
         "env_steps": int(result.records["length"].sum()),
         "wall_s": round(time.time() - start, 1),
     }
-    _write(path, cell)
+    write_json(path, cell)
     print(f"[events] {variant} s{seed} {protocol}: SUC {cell['SUC']:.1f}", flush=True)
     return cell
 
@@ -173,18 +173,26 @@ def report(task: str, seeds: list[int], episodes: int) -> dict[str, Any]:
             md.append(f"| {protocol} | {metric} | {over_seeds(vals['without'])} | {over_seeds(vals['with'])} | {d} |")
         doc["protocols"][protocol] = rows
     md += _loss_rows(cells, seeds, doc)
-    steps = sum(int(c.get("env_steps", 0)) for c in cells.values())
-    wall = sum(float(c.get("wall_s", 0.0)) for c in cells.values())
+    return write_report(OUT, list(cells.values()), md, doc)
+
+
+def write_report(out: Path, cells: list[dict[str, Any]], md: list[str], doc: dict[str, Any]) -> dict[str, Any]:
+    """Close a report with what its evaluation cost (``cells``' env steps and wall time) and write it to ``out``
+    (report.md and report.json)."""
+    steps = sum(int(c.get("env_steps", 0)) for c in cells)
+    wall = sum(float(c.get("wall_s", 0.0)) for c in cells)
     md += ["", f"Evaluation: {len(cells)} cells, {steps:,} env steps, {wall / 60:.1f} min of wall time."]
     doc["evaluation"] = {"cells": len(cells), "env_steps": steps, "wall_s": round(wall, 1)}
-    OUT.mkdir(parents=True, exist_ok=True)
-    _write(OUT / "report.json", doc)
-    atomic_write_text(OUT / "report.md", "\n".join(md) + "\n")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "report.json", doc)
+    atomic_write_text(out / "report.md", "\n".join(md) + "\n")
     return doc
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def arguments(doc: str) -> argparse.Namespace:
+    """The command line of a recipe comparison (``doc``: its module docstring); with cells to compute, torch on one
+    thread."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--task", default="4p2e1o")
     ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101, 102])
     ap.add_argument("--episodes", type=int, default=500)
@@ -194,6 +202,12 @@ def main() -> None:
         import torch
 
         torch.set_num_threads(1)
+    return args
+
+
+def main() -> None:
+    args = arguments(__doc__)
+    if not args.report_only:
         for seed in args.seeds:
             for variant, recipe in RECIPES.items():
                 learner = train(recipe, args.task, seed)

@@ -18,28 +18,21 @@ the cells.
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from events_training import paired, train  # the same training runs and paired statistics
+from events_training import arguments, paired, train, write_json, write_report  # shared
 
 from atdrone.benchmark.stats import over_seeds
-from atdrone.fileio import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "results" / "sizes_training"
 RECIPES = {"one size": "sp_paper", "sizes": "sp_paper_sizes"}
 SIZES = (3, 4, 5, 6)
 METRICS = ("SUC", "COL")
-
-
-def _write(path: Path, data: object) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(data, indent=1) + "\n")
 
 
 def size_task(task: str, pursuers: int) -> str:
@@ -80,7 +73,7 @@ def evaluate_cell(recipe: str, task: str, seed: int, pursuers: int, episodes: in
         "env_steps": int(result.records["length"].sum()),
         "wall_s": round(time.time() - start, 1),
     }
-    _write(path, cell)
+    write_json(path, cell)
     print(f"[sizes] {recipe} s{seed} {played}: SUC {cell['SUC']:.1f}", flush=True)
     return cell
 
@@ -117,32 +110,19 @@ def report(task: str, seeds: list[int], episodes: int) -> dict[str, Any]:
             line = f"| {size_task(task, p)} | {metric} | {over_seeds(vals['one size'])} | {over_seeds(vals['sizes'])}"
             md.append(f"{line} | {d} |")
         doc["sizes"][size_task(task, p)] = rows
-    steps = sum(int(c.get("env_steps", 0)) for c in cells.values())
-    wall = sum(float(c.get("wall_s", 0.0)) for c in cells.values())
-    md += ["", f"Evaluation: {len(cells)} cells, {steps:,} env steps, {wall / 60:.1f} min of wall time."]
-    doc["evaluation"] = {"cells": len(cells), "env_steps": steps, "wall_s": round(wall, 1)}
-    _write(OUT / "report.json", doc)
-    atomic_write_text(OUT / "report.md", "\n".join(md) + "\n")
-    return doc
+    return write_report(OUT, list(cells.values()), md, doc)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--task", default="4p2e1o")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101, 102])
-    ap.add_argument("--episodes", type=int, default=500)
-    ap.add_argument("--report-only", action="store_true")
-    args = ap.parse_args()
+    args = arguments(__doc__)
     if not args.report_only:
-        import torch
-
-        torch.set_num_threads(1)
         for seed in args.seeds:
             for name, recipe in RECIPES.items():
                 learner = train(recipe, args.task, seed)
                 for p in SIZES:
                     evaluate_cell(name, args.task, seed, p, args.episodes, learner)
     report(args.task, args.seeds, args.episodes)
+    print((OUT / "report.md").read_text())
 
 
 if __name__ == "__main__":
