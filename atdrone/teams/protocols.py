@@ -119,7 +119,7 @@ def evaluation_protocol(name_or_path: str | Path | Protocol) -> Protocol:
         raise ConfigError(
             "sizes",
             f"protocol {protocol.name!r} draws the team's size, which only training does "
-            "(evaluate on a task variant instead, e.g. --task 6p2e1o)",
+            "(play a size as its task instead: --task configs/tasks/6p2e1o.json --cross-task)",
         )
     if protocol.split is not None:
         raise ConfigError(
