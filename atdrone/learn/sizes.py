@@ -125,7 +125,6 @@ class MixedSizeWorker:
         for worker in self.workers.values():
             worker.generator = self.generator
         self.rng = np.random.default_rng([seed, 17])
-        self.played: Counter[int] = Counter()  # rollouts played at each size
 
     @property
     def drawn(self) -> Counter[str]:
@@ -143,7 +142,6 @@ class MixedSizeWorker:
         """A fragment of ``steps`` steps at a size drawn uniformly (its :attr:`Fragment.num_p`)."""
         sizes = sorted(self.workers)
         p = sizes[int(self.rng.integers(len(sizes)))]
-        self.played[p] += 1
         return self.workers[p].collect(steps)
 
 
