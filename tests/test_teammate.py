@@ -303,6 +303,43 @@ def test_the_encoder_reads_the_nearest_teammates_in_range_of_a_bigger_team_and_m
     assert torch.equal(seven[..., :5, :], blocks) and not seven[..., 5:, :].any()  # masked: all zeros
 
 
+def _team_inputs(mates: int, in_range: list[float], distance: list[float]) -> torch.Tensor:
+    """Inputs (1, width) of a NAHT-D network with history 1 and one evader in a team with ``mates`` teammates: the
+    current frame's teammate blocks with these in-range flags and distances, the past frame and action zeros."""
+    D = 4 * (1 + 1 + mates)
+    x = torch.zeros(1, 2 * D + 1)
+    blocks = x[0, :D].view(1 + 1 + mates, 4)  # the current frame (first): evader, own, teammates
+    blocks[2:, 0], blocks[2:, 1] = torch.tensor(in_range), torch.tensor(distance)
+    return x
+
+
+def test_the_decoder_predicts_the_teammates_the_encoder_reads_in_a_team_of_another_size():
+    """Built for 4 pursuers (3 teammates): in a team of 6 its targets are the 3 nearest in range now (index
+    order), as the encoder reads them; in a team of 3 the missing teammate is left out of the mean."""
+    torch.manual_seed(0)
+    model = TeammateActorCritic(TeammateConfig(num_p=4, num_e=1, history=1, embed_dim=2, decoder_hidden=2))
+    six = _team_inputs(5, [1.0, 0.0, 1.0, 1.0, 1.0], [0.16, 0.01, 0.04, 0.10, 0.18])  # nearest in range: 2, 3, 0
+    mates = torch.tensor([[[0.1 * j, 0.2 * j - 0.3, 0.5 + 0.1 * j] for j in range(5)]])  # teammate j's target
+    assert model.fit_mates(six, mates)[0, :, 0].tolist() == pytest.approx([0.0, 0.2, 0.3])
+    assert model.decoder_loss(six, mates).item() == model.decoder_loss(six, mates[:, [0, 2, 3]]).item()
+    three = _team_inputs(2, [1.0, 1.0], [0.1, 0.2])
+    with torch.no_grad():
+        mean, log_std = model.decode(three)
+    s = log_std.exp()
+    kl = [
+        float(
+            torch.log(s[0, j] / mates[0, j, 2])
+            + (mates[0, j, 2] ** 2 + (mates[0, j, 1] - mean[0, j]) ** 2) / (2 * s[0, j] ** 2)
+            - 0.5
+        )
+        for j in range(2)
+    ]
+    loss = model.decoder_loss(three, mates[:, :2])
+    assert loss.item() == pytest.approx(sum(kl) / 2, rel=1e-5)  # the two present teammates' mean, not over 3
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
 @pytest.mark.parametrize("task", ["configs/tasks/3p2e1o.json", "configs/tasks/6p2e1o.json"])
 def test_a_naht_d_network_built_for_four_pursuers_flies_in_a_team_of_another_size(task):
     from atdrone.policies.neural import NeuralPolicy

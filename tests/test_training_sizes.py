@@ -140,7 +140,7 @@ def test_an_update_over_two_sizes_trains_on_each_and_one_size_is_the_plain_updat
 
 def test_with_partners_the_learner_keeps_its_slots_and_partners_fill_the_others() -> None:
     """Best-response style: 2 learner slots, the zoo's drones in 1 to 4 partner slots by size, each size with
-    policies of its own; a profile distribution (HOLA-Drone V2's) fills a fixed count and is refused."""
+    policies of its own; a team without a partner slot is refused."""
     made: list[int] = []
 
     def partners(task: TaskConfig) -> list[Policy | None]:
@@ -157,22 +157,76 @@ def test_with_partners_the_learner_keeps_its_slots_and_partners_fill_the_others(
     for f in frags:
         assert f.u.shape == (8, 8, 2) and f.extras["partner_members"].shape == (8, 8, f.num_p - 2)
         assert f.obs.shape[-1] == 4 * (f.num_p + 2)
-    with pytest.raises(ConfigError, match="fixed number of slots"):
-        make_worker(
-            load_task(TASK),
-            4,
-            ARCH,
-            PPO,
-            sizes=(3, 6),
-            partners=partners,
-            num_ctrl=2,
-            distribution=profiles({("a", "b"): 1.0}),
-        )
     with pytest.raises(ConfigError, match="no partner slot"):
         make_worker(load_task(TASK), 4, ARCH, PPO, sizes=(3, 6), partners=partners, num_ctrl=3)
 
 
-def test_sizes_are_refused_where_the_training_cannot_draw_them(tmp_path: Path) -> None:
+def test_a_partner_profile_fills_fewer_slots_with_a_subset_of_its_members_and_more_from_its_members() -> None:
+    dist = profiles({("a", "b", "c"): 0.5, ("d", "e", "f"): 0.5})
+    same = dist.resized(3)(np.random.default_rng(1), 50)
+    assert np.array_equal(same, dist.draw(np.random.default_rng(1), 50, 3))  # its own count: the plain draw
+    fewer, more = dist.resized(2)(np.random.default_rng(2), 400), dist.resized(5)(np.random.default_rng(3), 400)
+    assert fewer.shape == (400, 2) and more.shape == (400, 5)
+    for team in (fewer, more):
+        assert (team // 3 == team[:, :1] // 3).all()  # one profile's members alone (a, b, c: 0-2; d, e, f: 3-5)
+    assert (fewer[:, 0] != fewer[:, 1]).all()  # a subset: without replacement
+    assert {tuple(sorted(r)) for r in fewer} == {(0, 1), (0, 2), (1, 2), (3, 4), (3, 5), (4, 5)}  # every subset
+    assert all({0, 1, 2} <= set(r) or {3, 4, 5} <= set(r) for r in more)  # the whole profile, and extras
+    assert set(np.unique(more[:, 3:])) == {0, 1, 2, 3, 4, 5}
+
+
+def test_hola_profiles_fill_every_size_with_their_members() -> None:
+    """HOLA-Drone V2's partner profiles of 2 (a team of 4, 2 learner slots) fill 1 to 4 partner slots by size."""
+    worker = make_worker(
+        load_task(TASK),
+        4,
+        ARCH,
+        PPO,
+        sizes=(3, 6),
+        partners=lambda task: [GreedyPolicy(), GreedyPolicy(), GreedyPolicy()],
+        num_ctrl=2,
+        distribution=profiles({("a", "b"): 0.5, ("a", "c"): 0.5}),
+    )
+    worker.set_weights(_learner().get_weights())
+    frags = [worker.collect(8) for _ in range(10)]
+    assert {f.num_p for f in frags} == {3, 4, 5, 6}
+    for f in frags:
+        teams = f.extras["partner_members"].reshape(-1, f.num_p - 2)
+        assert ((teams == 0).any(1) | (f.num_p == 3)).all()  # both profiles hold "a": a team of 2+ partners has it
+        assert not ((teams == 1).any(1) & (teams == 2).any(1)).any()  # never b and c: one profile per episode
+        if f.num_p >= 4:
+            assert ((teams == 1).any(1) | (teams == 2).any(1)).all()  # the whole profile, extras from it
+
+
+def test_naht_d_trains_at_drawn_sizes_with_its_decoder() -> None:
+    """NAHT-D built for 4 pursuers: rollouts at 3 to 6 record each size's teammates' actions, and one update
+    over every size trains the decoder on the teammates its encoder reads (a finite, positive loss)."""
+    from atdrone.models.teammate import TeammateActorCritic, TeammateConfig
+
+    arch = TeammateActorCritic.header(TeammateConfig(decoder=True, entity_dim=8, hidden=16))
+    spec = LearnerSpec(PPO, 2, 4, 0, 10.0, architecture=arch)
+    learner = Learner(spec)
+    worker = make_worker(
+        load_task(TASK),
+        5,
+        spec.model_architecture(),
+        PPO,
+        sizes=(3, 6),
+        partners=lambda task: [GreedyPolicy(), None],
+        num_ctrl=2,
+        distribution=Uniform(("greedy", "self")),
+    )
+    worker.set_weights(learner.get_weights())
+    frags = [worker.collect(16) for _ in range(8)]
+    assert {f.num_p for f in frags} == {3, 4, 5, 6}
+    for f in frags:
+        assert f.mates is not None and f.mates.shape == (16, 8, 2, f.num_p - 1, 3)
+    stats = learner.update(frags)
+    assert np.isfinite(stats["train/decoder_loss"]) and stats["train/decoder_loss"] > 0
+    assert all(torch.isfinite(v).all() for v in learner.get_weights().values())
+
+
+def test_every_algorithm_takes_sizes_and_a_missing_variant_is_refused(tmp_path: Path) -> None:
     path = _doc(tmp_path, sizes=[3, 6])
     doc = {"name": "t", "task": TASK, "out_dir": str(tmp_path), "protocol": path}
     for mode in ({}, {"mode": "mappo"}, {"mode": "best_response", "zoo": "zoo1"}):
@@ -180,11 +234,10 @@ def test_sizes_are_refused_where_the_training_cannot_draw_them(tmp_path: Path) -
     with pytest.raises(ConfigError, match=r"protocol\.sizes: no task variant"):
         load_train_config({**doc, "task": "4p2e5o"})
     experiment = {"name": "e", "task": TASK, "out_dir": str(tmp_path), "protocol": path, "gif": False}
-    for algorithm in ("sp", "pbt", "mappo", "fcp", "naht_d_no_dec"):
+    for algorithm in ("sp", "pbt", "mappo", "fcp", "naht_d", "naht_d_no_dec", "hola", "hola_no_g"):
         assert load_experiment({**experiment, "algorithm": algorithm}).protocol
-    for algorithm, why in (("hola", "partner profiles"), ("hola_no_g", "partner profiles"), ("naht_d", "decoder")):
-        with pytest.raises(ConfigError, match=rf"protocol\.sizes: team sizes cannot be drawn here: .*{why}"):
-            load_experiment({**experiment, "algorithm": algorithm})
+    with pytest.raises(ConfigError, match=r"protocol\.sizes: no task variant"):
+        load_experiment({**experiment, "algorithm": "hola", "task": "4p2e5o"})
 
 
 def test_the_service_trains_a_best_response_at_drawn_sizes_and_records_the_protocol(

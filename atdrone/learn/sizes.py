@@ -14,8 +14,10 @@ pursuers has P - num_ctrl partner slots, each drawn from the training's distribu
 (uniform, weighted, a variable count: per slot, so at any count), and every size gets
 partner policies of its own (they keep per-drone memory), which act in a team of any size
 (they read the evader count off the arena). A distribution of whole partner profiles
-(HOLA-Drone V2's) fills a fixed number of slots and is refused (:func:`check_sizes`), as
-is a teammate model with a decoder (NAHT-D's predicts a fixed number of teammates).
+(HOLA-Drone V2's worst-case profiles) fills another slot count with the drawn profile's
+own members (:meth:`~atdrone.teams.partners.Profiles.resized`: a random subset of them in
+fewer slots, extra slots drawn from them in more). A teammate model's decoder predicts
+the teammates its encoder reads (:meth:`~atdrone.models.teammate.TeammateActorCritic.decoder_loss`).
 """
 
 from __future__ import annotations
@@ -60,14 +62,10 @@ def size_tasks(task: TaskConfig, sizes: tuple[int, int], path: str = "protocol.s
     return out
 
 
-def check_sizes(sizes: tuple[int, int] | None, task: TaskConfig, refused: str, path: str) -> None:
-    """ConfigError at ``path`` when a protocol's sizes cannot be trained: ``refused`` says why this training
-    cannot draw sizes ("" when it can), or a task variant is missing."""
-    if sizes is None:
-        return
-    if refused:
-        raise ConfigError(f"{path}.sizes", f"team sizes cannot be drawn here: {refused}")
-    size_tasks(task, sizes, f"{path}.sizes")
+def check_sizes(sizes: tuple[int, int] | None, task: TaskConfig, path: str) -> None:
+    """ConfigError at ``path``.sizes when a protocol's sizes cannot be trained: a task variant is missing."""
+    if sizes is not None:
+        size_tasks(task, sizes, f"{path}.sizes")
 
 
 def size_seed(seed: int, pursuers: int) -> int:
@@ -98,8 +96,6 @@ class MixedSizeWorker:
         events: EventPlan | None = None,
         split: tuple[int, int] | None = None,
     ) -> None:
-        if isinstance(distribution, Profiles):
-            raise ConfigError("protocol.sizes", "whole partner profiles fill a fixed number of slots, one team size")
         self.workers: dict[int, RolloutWorker] = {}
         for task in tasks:
             p = task.players.num_p
@@ -108,7 +104,11 @@ class MixedSizeWorker:
             if team and ctrl >= p:
                 raise ConfigError("protocol.sizes", f"a team of {p} leaves no partner slot beside {ctrl} learners")
             capped = None if split is None else (min(split[0], ctrl), min(split[1], ctrl))
-            sampler = as_sampler(distribution, p - ctrl) if team and distribution is not None else None
+            sampler = None
+            if team and isinstance(distribution, Profiles):
+                sampler = distribution.resized(p - ctrl)
+            elif team and distribution is not None:
+                sampler = as_sampler(distribution, p - ctrl)
             self.workers[p] = RolloutWorker(
                 task,
                 size_seed(seed, p),

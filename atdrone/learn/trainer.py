@@ -151,7 +151,7 @@ def load_train_config(path_or_doc: str | Path | dict[str, Any], **overrides: Any
             raise ConfigError("protocol", str(exc)) from None
         slots = task.players.num_ctrl if cfg.mode == "best_response" else task.players.num_p
         check_split(protocol.split, slots, "protocol")
-        check_sizes(protocol.sizes, task, "", "protocol")
+        check_sizes(protocol.sizes, task, "protocol")
     return cfg
 
 

@@ -23,7 +23,9 @@ Streams keep every entity (no pooling), so the encoder is built for the task sha
 actor and critic read any size) the encoder reads the entities it was built for: with
 fewer, the missing blocks are masked, as an entity beyond reception range is; with more,
 it reads the nearest in range at the current step (in index order), the same ones in
-every past frame.
+every past frame. The decoder predicts the teammates the encoder reads, so its targets
+are fitted the same way (:meth:`TeammateActorCritic.fit_mates`), and NAHT-D trains at
+drawn team sizes (:mod:`atdrone.learn.sizes`).
 """
 
 from __future__ import annotations
@@ -146,11 +148,16 @@ def fit_blocks(blocks: torch.Tensor, n: int) -> torch.Tensor:
     if m < n:
         pad = blocks.new_zeros(*blocks.shape[:-2], n - m, blocks.shape[-1])
         return torch.cat([blocks, pad], -2)
-    newest = blocks[..., 0, :, :]
-    distance = torch.where(newest[..., 0] > 0, newest[..., 1], torch.full_like(newest[..., 1], math.inf))
-    order = torch.sort(torch.sort(distance, stable=True, dim=-1).indices[..., :n], -1).values  # (..., n), index order
+    order = nearest(blocks[..., 0, :, :], n)
     index = order[..., None, :, None].expand(*blocks.shape[:-2], n, blocks.shape[-1])
     return torch.gather(blocks, -2, index)
+
+
+def nearest(blocks: torch.Tensor, n: int) -> torch.Tensor:
+    """(..., n) indices of the n nearest in range of entity blocks (..., m, F), m >= n, in index order (masked
+    ones last among equals: they count as infinitely far)."""
+    distance = torch.where(blocks[..., 0] > 0, blocks[..., 1], torch.full_like(blocks[..., 1], math.inf))
+    return torch.sort(torch.sort(distance, stable=True, dim=-1).indices[..., :n], -1).values
 
 
 class TeammateActorCritic(nn.Module):
@@ -240,19 +247,40 @@ class TeammateActorCritic(nn.Module):
     def decoder_loss(self, inputs: torch.Tensor, mates: torch.Tensor) -> torch.Tensor:
         """Mean reconstruction loss of the teammates' current actions.
 
-        ``mates`` (..., num_p - 1, 3): each teammate's executed turn a, and the mean and
+        ``mates`` (..., m, 3): each of the m teammates' executed turn a, and the mean and
         std of its pre-squash action Gaussian (NaN for a rule-based partner). A learned
         teammate scores KL(its Gaussian || the prediction), in pre-squash units; a
         rule-based one, which is deterministic (a KL to a point mass is degenerate), the
         Gaussian negative log-likelihood of the turn it executed, a in [-1, 1], under the
         prediction's squashed mean tanh(mean) and its std (turn units: a turn at the
-        limit stays a bounded target).
+        limit stays a bounded target). In a team of another size (m != num_p - 1) the
+        targets are the teammates the encoder reads (:meth:`fit_mates`); the mean is then
+        over those present.
         """
         mean, log_std = self.decode(inputs)
+        mates = self.fit_mates(inputs, mates)
         turn, m_p, s_p = mates.unbind(-1)
         learned = torch.isfinite(s_p)
         var = torch.exp(2 * log_std)
         m_safe, s_safe = torch.where(learned, m_p, 0.0), torch.where(learned, s_p, 1.0)
         kl = log_std - torch.log(s_safe) + (s_safe**2 + (m_safe - mean) ** 2) / (2 * var) - 0.5
         nll = log_std + (torch.nan_to_num(turn) - torch.tanh(mean)) ** 2 / (2 * var) + 0.5 * math.log(2 * math.pi)
-        return torch.where(learned, kl, nll).mean()
+        loss = torch.where(learned, kl, nll)
+        present = torch.isfinite(turn)
+        if bool(present.all()):
+            return loss.mean()
+        return torch.where(present, loss, 0.0).sum() / present.sum().clamp(min=1)
+
+    def fit_mates(self, inputs: torch.Tensor, mates: torch.Tensor) -> torch.Tensor:
+        """Decoder targets (..., m, 3) of a team with m teammates as the num_p - 1 the encoder reads
+        (:func:`fit_blocks`): absent ones (all NaN) added when m is smaller; when larger, the nearest in range in
+        the current observation (``inputs``' newest frame), in index order."""
+        n, m = self.cfg.num_p - 1, mates.shape[-2]
+        if m == n:
+            return mates
+        if m < n:
+            return torch.cat([mates, mates.new_full((*mates.shape[:-2], n - m, mates.shape[-1]), math.nan)], -2)
+        D = obs_width(inputs, self.cfg.history)
+        current = inputs[..., :D].reshape(*inputs.shape[:-1], D // ENTITY_FEATURES, ENTITY_FEATURES)
+        order = nearest(current[..., self.cfg.num_e + 1 :, :], n)
+        return torch.gather(mates, -2, order[..., None].expand(*order.shape, mates.shape[-1]))

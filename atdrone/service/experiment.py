@@ -175,22 +175,14 @@ def load_experiment(path_or_doc: str | Path | Mapping[str, Any], **overrides: An
         _check_zoo(cfg.select_zoo, "select_zoo", cfg.task)
         _check_disjoint(cfg.select_zoo)
     if cfg.protocol:
-        _check_protocol(cfg.protocol, task, cfg.algorithm)
+        _check_protocol(cfg.protocol, task)
     return cfg
 
 
-# the algorithms whose training cannot draw team sizes, and why (atdrone.learn.sizes)
-SIZES_REFUSED = {
-    "hola": "HOLA-Drone V2 trains on whole partner profiles, which fill a fixed number of slots",
-    "hola_no_g": "HOLA-Drone V2 trains on whole partner profiles, which fill a fixed number of slots",
-    "naht_d": "NAHT-D's teammate decoder predicts a fixed number of teammates",
-}
-
-
-def _check_protocol(name: str, task: TaskConfig, algorithm: str) -> None:
+def _check_protocol(name: str, task: TaskConfig) -> None:
     """ConfigError at protocol unless it loads, its split fits the task's pursuer slots (a training call with
-    partners caps it at the slots its learner fills, see :meth:`Coordinator.train`) and its team sizes can be
-    drawn by the algorithm (not :data:`SIZES_REFUSED`) on shipped task variants."""
+    partners caps it at the slots its learner fills, see :meth:`Coordinator.train`) and its team sizes are
+    shipped task variants."""
     from atdrone.learn.sizes import check_sizes
     from atdrone.teams.protocols import check_split, load_protocol
 
@@ -199,7 +191,7 @@ def _check_protocol(name: str, task: TaskConfig, algorithm: str) -> None:
     except ConfigError as exc:
         raise ConfigError("protocol", str(exc)) from None
     check_split(protocol.split, task.players.num_p, "protocol")
-    check_sizes(protocol.sizes, task, SIZES_REFUSED.get(algorithm, ""), "protocol")
+    check_sizes(protocol.sizes, task, "protocol")
 
 
 def _check_disjoint(zoo: str) -> None:

@@ -118,6 +118,26 @@ class Profiles:
         picks = rng.choice(len(self.profiles), size=n, p=p / p.sum())
         return np.asarray(self.profiles, dtype=np.int64)[picks]
 
+    def resized(self, slots: int) -> PartnerSampler:
+        """A sampler for teams of ``slots`` partner slots, the profiles' own count or another (team sizes drawn
+        in training): each episode draws a profile as :meth:`draw` does, then with fewer slots keeps a random
+        subset of its members (without replacement), and with more fills the extra slots from its members
+        (uniformly, with replacement), so a team of any size holds the drawn profile's members alone."""
+        if slots <= 0:
+            raise ValueError(f"slots must be positive, got {slots}")
+        m = len(self.profiles[0])
+
+        def sample(rng: np.random.Generator, n: int) -> np.ndarray:
+            picks = self.draw(rng, n, m)
+            rows = np.arange(n)[:, None]
+            if slots < m:
+                return picks[rows, np.argsort(rng.random((n, m)), axis=1)[:, :slots]]
+            if slots > m:
+                return np.concatenate([picks, picks[rows, rng.integers(m, size=(n, slots - m))]], axis=1)
+            return picks
+
+        return sample
+
 
 def profiles(dist: Mapping[tuple[str, ...], float]) -> Profiles:
     """A Profiles distribution from {profile (member ids): probability}."""
