@@ -226,6 +226,19 @@ def test_naht_d_trains_at_drawn_sizes_with_its_decoder() -> None:
     assert all(torch.isfinite(v).all() for v in learner.get_weights().values())
 
 
+def test_a_centralised_critic_reads_the_global_state_of_an_updates_one_size_other_than_the_tasks() -> None:
+    """MAPPO built for 4 pursuers: an update whose every rollout was played in a team of 6 (one size drawn by
+    every worker) reads the global state as 6 pursuers'."""
+    arch = architecture(PPO, centralised_critic=True)
+    learner = Learner(LearnerSpec(PPO, 2, 4, 0, 10.0, architecture=arch))
+    worker = make_worker(load_task(TASK), 3, arch, PPO, sizes=(6, 6))
+    worker.set_weights(learner.get_weights())
+    frags = [worker.collect(16) for _ in range(2)]
+    assert {f.num_p for f in frags} == {6}
+    stats = learner.update(frags)
+    assert stats["train/team_size"] == 6 and np.isfinite(stats["train/value_loss"])
+
+
 def test_every_algorithm_takes_sizes_and_a_missing_variant_is_refused(tmp_path: Path) -> None:
     path = _doc(tmp_path, sizes=[3, 6])
     doc = {"name": "t", "task": TASK, "out_dir": str(tmp_path), "protocol": path}

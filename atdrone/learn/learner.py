@@ -151,11 +151,8 @@ class Learner:
         lr = self.current_lr()
         sizes = sorted({f.num_p for f in given})
         frags = [concat_fragments([f for f in given if f.num_p == p]) for p in sizes]  # one per team size
-        batch: Any = (
-            frags[0].batch(cfg.gamma, cfg.gae_lambda)
-            if len(frags) == 1
-            else [(f.num_p, f.batch(cfg.gamma, cfg.gae_lambda)) for f in frags]
-        )
+        # each with its pursuer count (a centralised critic reads the global state by it), the task's if unknown
+        batch = [(f.num_p or self.spec.num_p, f.batch(cfg.gamma, cfg.gae_lambda)) for f in frags]
         stats = ppo_update(
             self.model, self.optimizer, batch, cfg, self.spec.num_e, self.spec.num_p, self.generator, lr=lr
         )
