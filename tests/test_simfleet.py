@@ -426,6 +426,41 @@ def test_radio_tries_are_lost_and_retried() -> None:
 
 
 # ---------------------------------------------------------------- radio
+def test_each_link_has_a_one_packet_queue_of_its_own_and_the_dongle_serves_the_links_in_turn() -> None:
+    """As in cflib's radio driver (an out_queue of one packet per link): a link whose queue is full blocks only its
+    own sender, never another link's, so no link is crowded out by the others; the dongle takes them in turn."""
+    import queue
+
+    from atdrone.deploy.simradio import SimRadio
+
+    class Link:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+        def transmit(self, pk: int) -> None:
+            sent.append((self.name, pk))
+
+    sent: list[tuple[str, int]] = []
+    radio = SimRadio(packet_rate=1000.0)
+    try:
+        radio.jam(0.5)
+        a, b = radio.link_queue(Link("a")), radio.link_queue(Link("b"))
+        a.put(1)
+        deadline = time.monotonic() + 2.0
+        while not a.empty() and time.monotonic() < deadline:  # the dongle holds it, jammed
+            time.sleep(0.005)
+        a.put(2)  # a's queue is full now
+        b.put(3, True, 0.1)  # b's own queue has room
+        with pytest.raises(queue.Full):
+            a.put(4, True, 0.1)
+        deadline = time.monotonic() + 3.0
+        while len(sent) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert sent == [("a", 1), ("b", 3), ("a", 2)]  # after a's packet, b's turn
+    finally:
+        radio.close()
+
+
 def test_the_radio_blocks_a_send_while_jammed_then_reports_a_link_error(tmp_path) -> None:
     """Like cflib's radio driver: a send waits up to 2 s for room in a one-packet queue, then reports a link
     error. (Called on the driver directly: through cflib, the error callback runs under the Crazyflie's send

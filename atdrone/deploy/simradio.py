@@ -1,8 +1,9 @@
 """A model of the Crazyradio link the simulated fleet is reached through (``simradio://`` URIs).
 
-Like cflib's radio driver over one Crazyradio: each send puts the packet in a queue
-holding one packet and waits up to ``put_timeout`` wall seconds for room, then reports a
-link error; the dongle takes one packet every ``1 / packet_rate`` wall seconds. Each try
+Like cflib's radio driver over one Crazyradio: each link's send puts the packet in that
+link's own queue holding one packet and waits up to ``put_timeout`` wall seconds for
+room, then reports a link error; the dongle serves the links in turn, one packet every
+``1 / packet_rate`` wall seconds (so no link's sender can be crowded out by the others). Each try
 is lost with probability ``loss`` (no acknowledgement) and tried again, at most
 ``retries`` times more (the radio's automatic retries), each try costing a packet slot;
 a packet whose every try was lost is dropped. Drone-to-host packets ride on the
@@ -47,9 +48,10 @@ class LinkLoss:
 class SimRadio(LinkLoss):
     """A Crazyradio shared by every ``simradio://`` link of a fleet: one dongle sends packets in turn.
 
-    Like cflib's radio driver, each send puts the packet in a queue holding one packet and
-    waits up to ``put_timeout`` wall seconds for room, then reports a link error; the
-    dongle takes one packet every ``1 / packet_rate`` wall seconds. :meth:`jam` stops it for a
+    Like cflib's radio driver, each link's send puts the packet in the link's own queue
+    holding one packet (:meth:`link_queue`) and waits up to ``put_timeout`` wall seconds for
+    room, then reports a link error; the dongle takes the links' packets in turn, one every
+    ``1 / packet_rate`` wall seconds. :meth:`jam` stops it for a
     while (interference, a hung USB transfer): senders block.
     """
 
@@ -58,12 +60,23 @@ class SimRadio(LinkLoss):
     ) -> None:
         super().__init__(loss, retries, seed)
         self.packet_rate, self.put_timeout = packet_rate, put_timeout
-        self.queue: queue.Queue[tuple[Any, Any]] = queue.Queue(1)
+        self.links: list[tuple[Any, queue.Queue[Any]]] = []  # (driver, its one-packet queue), in connect order
+        self.ready = threading.Event()  # a packet was queued
         self.jammed_until = 0.0
         self.sent = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="simradio", daemon=True)
         self._thread.start()
+
+    def link_queue(self, driver: Any) -> queue.Queue[Any]:
+        """A new link's queue of one packet (cflib's out_queue); the dongle serves it from now on."""
+        out: queue.Queue[Any] = queue.Queue(1)
+        self.links = [*self.links, (driver, out)]
+        return out
+
+    def drop_link(self, driver: Any) -> None:
+        """Stop serving a closed link (a packet it left queued is not sent)."""
+        self.links = [link for link in self.links if link[0] is not driver]
 
     def jam(self, seconds: float) -> None:
         self.jammed_until = time.monotonic() + seconds
@@ -73,12 +86,22 @@ class SimRadio(LinkLoss):
         self._thread.join(timeout=2)
 
     def _run(self) -> None:
-        next_t = time.monotonic()
+        next_t, turn = time.monotonic(), 0
         while not self._stop.is_set():
-            try:
-                driver, pk = self.queue.get(timeout=0.05)
-            except queue.Empty:
+            self.ready.clear()
+            links, taken = self.links, None
+            for i in range(len(links)):  # the next link in turn with a packet waiting
+                driver, out = links[(turn + i) % len(links)]
+                try:
+                    taken = driver, out.get_nowait()
+                except queue.Empty:
+                    continue
+                turn = (turn + i + 1) % len(links)
+                break
+            if taken is None:
+                self.ready.wait(0.05)
                 continue
+            driver, pk = taken
             while time.monotonic() < self.jammed_until and not self._stop.is_set():
                 time.sleep(0.005)
             tries_before = self.tries
@@ -113,16 +136,23 @@ def register_simradio() -> None:
                 raise WrongUriType("Not a simradio URI")
             udp = "udp://" + uri[len(SIMRADIO) :]
             self.radio = _RADIOS[int(udp.rsplit(":", 1)[1])]
+            self.out = self.radio.link_queue(self)
             super().connect(udp, stats_cb, error_cb)
 
         def send_packet(self, pk: Any) -> bool:
             try:
-                self.radio.queue.put((self, pk), True, self.radio.put_timeout)
+                self.out.put(pk, True, self.radio.put_timeout)
+                self.radio.ready.set()
                 return True
             except queue.Full:
                 if self.link_error_callback:
                     self.link_error_callback("RadioDriver: Could not send packet to copter")
                 return False
+
+        def close(self) -> None:
+            if hasattr(self, "radio"):
+                self.radio.drop_link(self)
+            super().close()
 
         def transmit(self, pk: Any) -> None:
             UdpDriver.send_packet(self, pk)
