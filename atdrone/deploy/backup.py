@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -37,6 +37,7 @@ from atdrone.config import TaskConfig
 from atdrone.deploy.bridge import Bridge
 from atdrone.deploy.clock import Clock
 from atdrone.deploy.config import DeployConfig
+from atdrone.deploy.hooks import FlightHooks
 from atdrone.deploy.landing import cut_by_firmware
 from atdrone.deploy.links import LinkView
 from atdrone.deploy.sequence import COLUMN_CLEAR
@@ -125,7 +126,7 @@ class Join:
     target: np.ndarray | None = field(default=None, repr=False)
 
 
-class Backups:
+class Backups(FlightHooks):
     """Dropping partner drones and seating backups (see the module docstring); the flight provides the rest."""
 
     cfg: DeployConfig
@@ -150,18 +151,6 @@ class Backups:
     t0: float
     tick_t: float
     dt: float
-
-    if TYPE_CHECKING:  # provided by the flight and its other parts (no runtime stubs: they would shadow them)
-
-        def _land(self, names: Sequence[str]) -> None: ...
-
-        def _set_state(self, names: Sequence[str], state: str) -> None: ...
-
-        def _airborne(self) -> np.ndarray: ...
-
-        def _fence(self) -> tuple[np.ndarray, np.ndarray]: ...
-
-        def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
     def _init_backups(self) -> None:
         P = len(self.pursuers)

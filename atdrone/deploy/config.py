@@ -30,14 +30,15 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple, get_args
 
 from atdrone.config import ConfigError, TaskConfig, _check, _non_negative, _positive, check_task_field, load_config
 from atdrone.deploy.mocap import FrameTransform
 from atdrone.deploy.shield import ShieldConfig
 
-ROLES = ("learner", "partner", "evader")
-FAULT_KINDS = (
+Role = Literal["learner", "partner", "evader"]
+ROLES: tuple[str, ...] = get_args(Role)
+FaultKind = Literal[
     "mocap_dropout",
     "mocap_freeze",
     "link_loss",
@@ -50,7 +51,7 @@ FAULT_KINDS = (
     "host_pause",
     "exception",
     "signal",
-)
+]
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
@@ -77,7 +78,7 @@ class Drone:
     """One drone: its name, radio URI (cflib backend; the sim backend assigns its own), rigid body and role."""
 
     name: str
-    role: Literal["learner", "partner", "evader"]
+    role: Role
     uri: str = field(default="", metadata={"empty_ok": True})
     body: str = field(default="", metadata={"empty_ok": True})  # the motion-capture rigid body (default: name)
 
@@ -173,20 +174,7 @@ class Fault:
     SIGINT or SIGTERM).
     """
 
-    kind: Literal[
-        "mocap_dropout",
-        "mocap_freeze",
-        "link_loss",
-        "link_dropout",
-        "pose_blocked",
-        "drift",
-        "low_battery",
-        "policy_stall",
-        "loop_hang",
-        "host_pause",
-        "exception",
-        "signal",
-    ]
+    kind: FaultKind
     at: float = field(metadata=_check(_non_negative))
     drone: str = field(default="", metadata={"empty_ok": True})
     duration: float = field(default=1.0, metadata=_check(_non_negative))

@@ -33,6 +33,7 @@ from atdrone.deploy.bridge import Bridge
 from atdrone.deploy.clock import Clock
 from atdrone.deploy.config import DeployConfig
 from atdrone.deploy.crtp import BIT_CRASHED, BIT_HL_DISABLED, BIT_HL_FINISHED, BIT_IS_FLYING, BIT_LOCKED, BIT_TUMBLED
+from atdrone.deploy.hooks import FlightHooks
 from atdrone.deploy.links import LinkHealth, LinkView
 from atdrone.deploy.reactions import Reaction, Verdict, drops, spare_landing, verdict
 from atdrone.deploy.shield import Action, ShieldConfig, ShieldDecision, ellipsoid_distance
@@ -59,7 +60,7 @@ def confirmed_down(bits: int, speed: float) -> bool:
     return not bits >> BIT_IS_FLYING & 1 and planner_done and not cut_by_firmware(bits) and not speed > STILL
 
 
-class Landing:
+class Landing(FlightHooks):
     """Landing, reactions and the end of a flight (see the module docstring)."""
 
     cfg: DeployConfig
@@ -83,38 +84,6 @@ class Landing:
     hold_at: np.ndarray
     prev_setpoint: np.ndarray
     notes: dict[str, list[str]]
-
-    # provided by the flight
-    def _begin_tick(self) -> float:
-        raise NotImplementedError
-
-    def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
-    def _shield(
-        self,
-        pos: np.ndarray,
-        age: np.ndarray,
-        setpoints: np.ndarray,
-        vel: np.ndarray | None = None,
-        policy_late: float = 0.0,
-    ) -> ShieldDecision:
-        raise NotImplementedError
-
-    def _hold_tick(self, first: Callable[[], None] | None = None) -> bool:
-        raise NotImplementedError
-
-    def _log_tick(
-        self,
-        t: float,
-        step: int,
-        pos: np.ndarray,
-        yaw: np.ndarray,
-        decision: ShieldDecision,
-        latency: dict[str, float],
-        virtual_e: np.ndarray | None,
-    ) -> None:
-        raise NotImplementedError
 
     def _alone(self) -> np.ndarray:
         """(D,) the drones a low battery or lost link drops alone: none, unless the flight's backups part (before

@@ -21,11 +21,11 @@ from atdrone.config import TaskConfig
 from atdrone.deploy.bridge import Bridge
 from atdrone.deploy.clock import Clock
 from atdrone.deploy.config import DeployConfig
+from atdrone.deploy.hooks import FlightHooks
 from atdrone.deploy.landing import LANDED_CONFIRM
 from atdrone.deploy.shield import (
     Obstacles,
     ShieldConfig,
-    ShieldDecision,
     ellipsoid_distance,
     geofence,
     obstacle_distance,
@@ -40,7 +40,7 @@ SPAWN_DRAWS = 5  # spawn draws tried before a blocked transit ends the flight
 COLUMN_CLEAR = 0.45  # m: no drone in the air this near (in x, y) a landed one that takes off
 
 
-class Sequencing:
+class Sequencing(FlightHooks):
     """Between episodes (see the module docstring); the flight provides the state and the ticks."""
 
     cfg: DeployConfig
@@ -61,53 +61,6 @@ class Sequencing:
     aborted: str
     _worker: concurrent.futures.ThreadPoolExecutor
     _drawn: tuple[np.ndarray, np.ndarray]
-
-    # provided by the flight
-    def _hold_tick(self, first: Callable[[], None] | None = None) -> bool:
-        raise NotImplementedError
-
-    def _begin_tick(self) -> float:
-        raise NotImplementedError
-
-    def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
-    def _shield(
-        self,
-        pos: np.ndarray,
-        age: np.ndarray,
-        setpoints: np.ndarray,
-        vel: np.ndarray | None = None,
-        policy_late: float = 0.0,
-    ) -> ShieldDecision:
-        raise NotImplementedError
-
-    def _apply(self, decision: ShieldDecision) -> bool:
-        raise NotImplementedError
-
-    def _touchdown(self, pos: np.ndarray) -> None:
-        raise NotImplementedError
-
-    def _log_tick(
-        self,
-        t: float,
-        step: int,
-        pos: np.ndarray,
-        yaw: np.ndarray,
-        decision: ShieldDecision,
-        latency: dict[str, float],
-        virtual_e: np.ndarray | None,
-    ) -> None:
-        raise NotImplementedError
-
-    def _set_state(self, names: Sequence[str], state: str) -> None:
-        raise NotImplementedError
-
-    def _airborne(self) -> np.ndarray:
-        raise NotImplementedError
-
-    def _landing_time(self) -> float:
-        raise NotImplementedError
 
     if TYPE_CHECKING:  # the backups' part of the flight (no runtime stubs: they would shadow it)
 
