@@ -125,6 +125,13 @@ def test_a_stopped_then_killed_benchmark_finishes_only_its_missing_cells_and_rep
     cells = tmp_path / "bench" / "whole" / "cells"
     trained = {json.loads((cells / f"sp-4p2e1o-s{s}.json").read_text())["timing"]["node"] for s in (0, 1)}
     assert len(nodes) == 2 and trained == nodes  # the reference ran one training cell on each node
+    for path in sorted(cells.glob("*.json")):  # per zoo, episode summaries that add up to the record's metrics
+        rec = json.loads(path.read_text())
+        assert set(rec["episodes"]) == set(rec["metrics"]), path.name
+        for zoo, got in rec["episodes"].items():
+            metrics = rec["metrics"][zoo]
+            assert got["learner_crash"] + got["partner_only_crash"] == pytest.approx(metrics["COL"])
+            assert got["return_capture"] + got["return_collision"] + got["return_rest"] == pytest.approx(metrics["REW"])
     assert "3 cells: 1 done, 2 to run" in capsys.readouterr().out
     assert first.read_bytes() == kept  # the finished cell was not run again
     assert summary["mlflow_run_id"] == parent  # the same parent run, continued

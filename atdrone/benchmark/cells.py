@@ -32,7 +32,7 @@ import numpy as np
 
 from atdrone.benchmark.budget import plan
 from atdrone.benchmark.config import BenchmarkConfig, check_hola_generations, method_document, parse_benchmark
-from atdrone.config import ConfigError
+from atdrone.config import ConfigError, load_task
 from atdrone.learn.ppo import ppo_config
 from atdrone.policies.base import DroneBatch, StatelessPolicy
 from atdrone.service.experiment import ExperimentConfig, load_experiment
@@ -192,6 +192,7 @@ def run_cell(
     """Train (or resume) and evaluate one cell here; its record (JSON-ready)."""
     import torch
 
+    from atdrone.benchmark.episodes import episode_summary
     from atdrone.teams.evaluation import evaluate
 
     torch.set_num_threads(1)
@@ -227,11 +228,14 @@ def run_cell(
         workers = exp.num_workers
         zoos = [cell.zoo] if cell.kind == "br" else [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
     metrics: dict[str, dict[str, float]] = {}
+    episodes: dict[str, dict[str, float]] = {}
     bench_eval = 0
     t_eval = time.perf_counter()
+    task = load_task(cell.task)
     for zoo in zoos:
-        result = evaluate(policy, cell.task, zoo, episodes=cfg.eval_episodes, seeds=[EVAL_SEED + cell.seed])
+        result = evaluate(policy, task, zoo, episodes=cfg.eval_episodes, seeds=[EVAL_SEED + cell.seed])
         metrics[zoo] = result.mean
+        episodes[zoo] = episode_summary(result.records, task)
         bench_eval += int(result.records["length"].sum())
     if cell.kind == "method" and cfg.protocols:  # the team-change protocols: reported apart, no bounds
         from atdrone.teams.protocols import load_protocol
@@ -262,7 +266,7 @@ def run_cell(
     }
     if cell.kind != "floor":
         timing["train_wall_s"] = round(train_wall, 1)
-    record.update(metrics=metrics, budget=budget, timing=timing)
+    record.update(metrics=metrics, episodes=episodes, budget=budget, timing=timing)
     return record
 
 

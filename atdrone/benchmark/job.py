@@ -281,6 +281,7 @@ def _run_cells(
             shown = counts
     if failed:
         raise cells_failed(failed)
+    done = finished(cfg)  # as the folder holds them: with what was added beside the job (benchmarks/grid_episodes.py)
     return [done[c.name] for c in grid]
 
 

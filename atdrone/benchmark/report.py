@@ -18,7 +18,8 @@ Files (``<results>/``):
 - ``evaluations.csv`` (one row per run x zoo), ``table.csv`` (Table 2, long form),
   ``paired.csv``, ``normalised.csv`` (with each bound's test), ``aggregate.csv`` (IQM and mean
   with stratified bootstrap 95 % intervals), ``improvement.csv`` (probability of improvement),
-  ``profiles.csv`` (performance profiles), ``paper.csv`` (the paper side by side),
+  ``profiles.csv`` (performance profiles), ``paper.csv`` (the paper side by side), ``gaps.csv`` (the
+  measurements that explain where ours differs from the paper: :mod:`~atdrone.benchmark.report_gaps`),
   ``orderings.csv`` (the paper's orderings, each with its verdict), ``budget.csv``, ``timing.csv``;
 - ``suc_<task>.png``, ``fig3_without_teammate_modelling.png`` and ``fig4_with_teammate_modelling.png``
   (the paper's two figures, a panel per task), ``performance_profiles.png``.
@@ -37,6 +38,7 @@ from atdrone.benchmark.bounds import make_bound
 from atdrone.benchmark.cells import STALL_FACTOR, cell_wall
 from atdrone.benchmark.config import HOLA_ALGORITHMS, BenchmarkConfig, check_hola_generations
 from atdrone.benchmark.report_figures import FIGURES, family_figure, profile_figure, suc_figure
+from atdrone.benchmark.report_gaps import gap_table
 from atdrone.benchmark.report_paper import CLAIMS, orderings, side_by_side
 from atdrone.benchmark.report_protocols import protocol_table, protocols_text
 from atdrone.benchmark.report_text import BUDGET_KEYS, Tables, markdown, order
@@ -275,6 +277,7 @@ def write_report(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dic
         spent=spent,
         claims=orderings(cfg, frame),
         side=side_by_side(cfg, frame),
+        gaps=gap_table(cfg, frame, records),
         marks=hola_marks(cfg, records),
     )
     prof = profiles(cfg, frame, norm)
@@ -289,6 +292,7 @@ def write_report(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dic
         ("improvement", poi),
         ("profiles", prof),
         ("paper", tables.side),
+        ("gaps", tables.gaps),
         ("budget", spent),
         ("timing", timing),
         ("orderings", tables.claims),

@@ -11,6 +11,7 @@ import pandas as pd
 
 from atdrone.benchmark.cells import STALL_FACTOR
 from atdrone.benchmark.config import MIN_HOLA_GENERATIONS, BenchmarkConfig
+from atdrone.benchmark.report_gaps import gaps_text
 from atdrone.benchmark.report_paper import diff_text, orderings_text, side_by_side_text
 from atdrone.benchmark.stats import md_table, mean_std
 from atdrone.teams.evaluation import METRICS
@@ -31,6 +32,7 @@ class Tables:
     spent: pd.DataFrame
     claims: pd.DataFrame = field(default_factory=pd.DataFrame)
     side: pd.DataFrame = field(default_factory=pd.DataFrame)
+    gaps: pd.DataFrame = field(default_factory=pd.DataFrame)
     marks: dict[str, str] = field(default_factory=dict)
 
 
@@ -237,6 +239,7 @@ def markdown(cfg: BenchmarkConfig, tables: Tables) -> str:
         *_header(cfg, tables),
         *_results(cfg, tables),
         *side_by_side_text(tables.side),
+        *gaps_text(cfg, tables.side, tables.gaps, tables.spent),
         *orderings_text(tables.claims),
         *_paired(cfg, tables.pairs),
         *_normalised(tables.norm),
