@@ -11,7 +11,7 @@ the last bit: a record whose replay differs is left as it is and named (exit 1).
 ``episodes``, written atomically in the job's own format. Records that already have them, floors (replayed on
 2026-11-30 they kept SUC, COL and AST but not REW, up to 1 % apart, a cause not traced; and a random learner's
 summary explains nothing), and cells whose learner is not in the folder, are skipped (the latter named). It prints a
-line per record and costs what the cells' evaluations cost (about 30 s of one core per method cell on a 2-core
+line per record and costs what the cells' evaluations cost (about 40 s of one core per method cell on a 2-core
 host), so run it at a low priority beside other work.
 """
 
