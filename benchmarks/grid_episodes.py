@@ -1,6 +1,6 @@
 """Add the episode summaries to finished cell records that lack them, by playing each cell's evaluation again.
 
-    python benchmarks/grid_episodes.py [--config paper_budget] [--cells DIR] [--limit N]
+    python benchmarks/grid_episodes.py [--config paper_budget] [--cells DIR] [--limit N] [PATTERN...]
 
 A cell's record keeps, per zoo, :func:`~atdrone.benchmark.episodes.episode_summary` of its evaluation (who was in
 the collisions, captures, episode lengths, the return split into the reward's terms); records written before the
@@ -18,6 +18,7 @@ host), so run it at a low priority beside other work.
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import hashlib
 import json
 import math
@@ -69,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", default="paper_budget", help="the benchmark (a configs/benchmarks name or a path)")
     ap.add_argument("--cells", type=Path, help="the cell records (default: the benchmark folder's cells/)")
     ap.add_argument("--limit", type=int, default=0, help="at most this many records (0: all)")
+    ap.add_argument("patterns", nargs="*", help="only the cells whose names match one of these (fnmatch), in order")
     args = ap.parse_args(argv)
     import torch
 
@@ -78,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = parse_benchmark(args.config)
     cells = args.cells or cfg.folder / "cells"
     paths = [p for p in sorted(cells.glob("*.json")) if not p.name.startswith("_")]
+    if args.patterns:
+        paths = list(dict.fromkeys(p for pattern in args.patterns for p in paths if fnmatch.fnmatch(p.stem, pattern)))
     todo = [p for p in paths if "episodes" not in json.loads(p.read_text())]
     if args.limit:
         todo = todo[: args.limit]
