@@ -229,3 +229,19 @@ def tiny_benchmark(tmp_path: Path, name: str) -> dict[str, Any]:
         "out_dir": str(tmp_path / "bench"),
         "results_dir": str(tmp_path / "results" / name),
     }
+
+
+def missing_zoo(tmp_path: Path) -> Path:
+    """A zoo document with a greedy member and a checkpoint member whose file is absent."""
+    import json
+
+    doc = {
+        "name": "ghosts",
+        "members": [
+            {"name": "greedy", "kind": "greedy"},
+            {"name": "ghost", "kind": "checkpoint", "checkpoint": str(tmp_path / "ghost.pt")},
+        ],
+    }
+    path = tmp_path / "ghosts.json"
+    path.write_text(json.dumps(doc))
+    return path

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import pytest
+from conftest import missing_zoo
 
 from atdrone.cli import main
 from atdrone.config import load_task
@@ -19,20 +20,6 @@ from atdrone.policies import zoo as zoo_module
 from atdrone.policies.zoo import ZooError, load_zoo
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-def _ghosts(tmp_path: Path) -> Path:
-    """A zoo of a greedy drone and a checkpoint member whose file is absent."""
-    doc = {
-        "name": "ghosts",
-        "members": [
-            {"name": "greedy", "kind": "greedy"},
-            {"name": "ghost", "kind": "checkpoint", "checkpoint": str(tmp_path / "ghost.pt")},
-        ],
-    }
-    path = tmp_path / "ghosts.json"
-    path.write_text(json.dumps(doc))
-    return path
 
 
 def _short_task(tmp_path: Path) -> Path:
@@ -44,7 +31,7 @@ def _short_task(tmp_path: Path) -> Path:
 
 
 def test_the_zoo_loads_names_its_missing_member_and_refuses_to_play(tmp_path):
-    zoo = load_zoo(_ghosts(tmp_path))
+    zoo = load_zoo(missing_zoo(tmp_path))
     assert zoo.names == ["greedy", "ghost"] and zoo.missing == ["ghost"]
     with pytest.raises(ZooError, match=rf"zoo 'ghosts' is incomplete: 'ghost' needs {tmp_path}/ghost\.pt"):
         zoo.policies()
@@ -56,7 +43,7 @@ def test_evaluate_all_zoos_plays_the_complete_one_and_skips_the_incomplete_one_s
 ):
     """--zoo all with zoo1 and the incomplete zoo: zoo1's cell is played, the other is listed as missing
     (table, JSON report) and a warning names the missing member."""
-    ghosts, load = _ghosts(tmp_path), zoo_module.load_zoo
+    ghosts, load = missing_zoo(tmp_path), zoo_module.load_zoo
     monkeypatch.setattr(zoo_module, "ZOO_NAMES", ("zoo1", "ghosts"))  # "all": zoo1 and the incomplete zoo
     monkeypatch.setattr(
         zoo_module, "load_zoo", lambda name, task=None: load(ghosts if name == "ghosts" else name, task)
@@ -91,7 +78,7 @@ def test_jobs_evaluate_with_only_an_incomplete_zoo_refuses_in_one_line(tmp_path,
     and one error line, and no report written."""
     job = load_script(REPO / "jobs" / "evaluate.py")
     out = tmp_path / "out"
-    rc = job.main(["--policy", "greedy", "--zoo", str(_ghosts(tmp_path)), "--episodes", "2", "--out-dir", str(out)])
+    rc = job.main(["--policy", "greedy", "--zoo", str(missing_zoo(tmp_path)), "--episodes", "2", "--out-dir", str(out)])
     err = capsys.readouterr().err.splitlines()
     assert rc == job.EXIT_USAGE == 2
     assert err == [

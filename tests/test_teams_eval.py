@@ -6,12 +6,12 @@ pinned per task, metrics equal to a plain recount of the episode records, and th
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import missing_zoo
 from gymnasium.utils.env_checker import check_env
 
 from atdrone.cli import main
@@ -57,20 +57,6 @@ def short_horizon(task: str, horizon: int) -> TaskConfig:
 
 
 wrap = wrap_angle
-
-
-def missing_zoo(tmp_path: Path) -> Path:
-    """A zoo document with a greedy member and a checkpoint member whose file is absent."""
-    doc = {
-        "name": "ghosts",
-        "members": [
-            {"name": "greedy", "kind": "greedy"},
-            {"name": "ghost", "kind": "checkpoint", "checkpoint": str(tmp_path / "ghost.pt")},
-        ],
-    }
-    path = tmp_path / "ghosts.json"
-    path.write_text(json.dumps(doc))
-    return path
 
 
 # ------------------------------------------------------------------- Match
