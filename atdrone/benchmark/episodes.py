@@ -37,13 +37,13 @@ def episode_summary(records: pd.DataFrame, task: TaskConfig) -> dict[str, float]
     penalties. The three parts add up to REW."""
     reward = task.task.reward
     shares = crash_shares(records)
-    ret = float(records["return"].mean())
-    capture = reward.capture * float(records["captured"].mean())
+    ret, captured = float(records["return"].mean()), float(records["captured"].mean())
+    capture = reward.capture * captured
     collision = reward.collision * float(records["collided"].to_numpy(bool).mean())
     return {
         "learner_crash": float(shares["learner_crash"]),
         "partner_only_crash": float(shares["partner_only_crash"]),
-        "captured": float(records["captured"].mean()),
+        "captured": captured,
         "length": float(records["length"].mean()),
         "return_capture": capture,
         "return_collision": collision,
