@@ -46,8 +46,9 @@ def _wait(predicate, timeout_s: float, what: str) -> None:  # type: ignore[no-un
         time.sleep(0.2)
 
 
-def test_agents_a_killed_drivers_ray_left_are_ended_by_the_next_start_and_live_rays_are_untouched(monkeypatch):
-    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+def _orphans_of_a_killed_driver(env: dict[str, str]) -> tuple[str, list[int]]:
+    """A driver's local Ray, its agents stopped (as a starved agent on a busy host: it cannot notice its raylet's
+    death before the next run starts), the driver SIGKILLed: (its session, the agents it left alive)."""
     driver = subprocess.Popen([sys.executable, "-c", DRIVER], stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert driver.stdout is not None
@@ -57,7 +58,6 @@ def test_agents_a_killed_drivers_ray_left_are_ended_by_the_next_start_and_live_r
         assert len(daemons) == 2, mine()  # its GCS and raylet
         _wait(lambda: len([p for p in mine() if "Agent" in p.title]) == 2, 60, "the agents never started")
         agents = [p for p in mine() if p.ppid in daemons and not p.daemon]
-        # a starved agent (a busy host): it cannot notice its raylet's death before the next run starts
         for p in agents:
             os.kill(p.pid, signal.SIGSTOP)
     finally:
@@ -66,12 +66,28 @@ def test_agents_a_killed_drivers_ray_left_are_ended_by_the_next_start_and_live_r
     _wait(lambda: not any(_alive(pid) for pid in daemons), 30, "the killed driver's GCS and raylet live on")
     left = [p.pid for p in agents if _alive(p.pid)]
     assert left and {p.pid for p in rayclean.orphans()} >= set(left), "no orphan was made: the test is broken"
+    return session, left
 
-    ended = subprocess.run([sys.executable, "-c", NEXT_START], capture_output=True, text=True, env=env, timeout=120)
-    assert ended.returncode == 0, ended.stderr[-2000:]
+
+# Another xdist worker's Ray start (any test's) ends orphans too, and may get there first: then this start has
+# nothing to end. That attempt proves nothing either way, so the scenario is made again; a start that never
+# ends them fails every attempt.
+ATTEMPTS = 3
+
+
+def test_agents_a_killed_drivers_ray_left_are_ended_by_the_next_start_and_live_rays_are_untouched(monkeypatch):
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    for _ in range(ATTEMPTS):
+        session, left = _orphans_of_a_killed_driver(env)
+        ended = subprocess.run([sys.executable, "-c", NEXT_START], capture_output=True, text=True, env=env, timeout=120)
+        assert ended.returncode == 0, ended.stderr[-2000:]
+        _wait(lambda pids=left: not any(_alive(pid) for pid in pids), 10, "the next start left the orphans alive")
+        if "a killed run left behind" in ended.stderr:
+            break
+    else:
+        pytest.fail(f"in {ATTEMPTS} attempts the next start never said it ended the orphans: {ended.stderr[-2000:]}")
     # the line names the sessions of all it ended: the dead one alone
     assert f"Ray process(es) a killed run left behind ({session}):" in ended.stderr, ended.stderr[-2000:]
-    _wait(lambda: not any(_alive(pid) for pid in left), 10, "the next start left the orphans alive")
     # the live Rays on this host (the suite's own, another run's) are nothing to end
     killed: list[int] = []
     monkeypatch.setattr(rayclean.os, "kill", lambda pid, sig: killed.append(pid))
