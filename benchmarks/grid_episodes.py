@@ -8,11 +8,10 @@ summaries were kept have only the metrics. This script plays each such cell's ev
 (the checkpoint its record names, checked against its sha256), the same zoos in the same order, episodes and seed.
 Evaluation of a trained learner is deterministic, so the replay's SUC, COL, AST and REW must equal the record's to
 the last bit: a record whose replay differs is left as it is and named (exit 1). A record that matches gets its
-``episodes``, written atomically in the job's own format. Records that already have them, floors (replayed on
-2026-11-30 they kept SUC, COL and AST but not REW, up to 1 % apart, a cause not traced; and a random learner's
-summary explains nothing), and cells whose learner is not in the folder, are skipped (the latter named). It prints a
-line per record and costs what the cells' evaluations cost (about 40 s of one core per method cell on a 2-core
-host), so run it at a low priority beside other work.
+``episodes``, written atomically in the job's own format. A floor replays its random learner (its turns drawn from
+the drones' keys, as the job draws them). Records that already have them, and cells whose learner is not in the
+folder, are skipped (the latter named). It prints a line per record and costs what the cells' evaluations cost
+(about 40 s of one core per method cell on a 2-core host), so run it at a low priority beside other work.
 """
 
 from __future__ import annotations
@@ -38,7 +37,7 @@ def _same(a: float, b: float) -> bool:
 
 def replay(cfg: Any, record: dict[str, Any]) -> dict[str, dict[str, float]] | str:
     """The record's episode summaries from its evaluation played again, or why not (a line)."""
-    from atdrone.benchmark.cells import EVAL_SEED
+    from atdrone.benchmark.cells import EVAL_SEED, RandomPolicy
     from atdrone.benchmark.episodes import episode_summary
     from atdrone.config import load_task
     from atdrone.policies.neural import load_policy
@@ -46,14 +45,15 @@ def replay(cfg: Any, record: dict[str, Any]) -> dict[str, dict[str, float]] | st
 
     cell = record["cell"]
     if cell["kind"] == "floor":
-        return "skipped: a floor"
-    checkpoint = cfg.folder / record["checkpoint"]
-    if not checkpoint.is_file():
-        return f"skipped: no learner at {checkpoint}"
-    if hashlib.sha256(checkpoint.read_bytes()).hexdigest() != record["sha256"]:
-        return f"skipped: {checkpoint} is not the learner its record names (sha256)"
-    policy = load_policy(checkpoint)
-    zoos = [cell["zoo"]] if cell["kind"] == "br" else [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
+        policy: Any = RandomPolicy(EVAL_SEED + cell["seed"])
+    else:
+        checkpoint = cfg.folder / record["checkpoint"]
+        if not checkpoint.is_file():
+            return f"skipped: no learner at {checkpoint}"
+        if hashlib.sha256(checkpoint.read_bytes()).hexdigest() != record["sha256"]:
+            return f"skipped: {checkpoint} is not the learner its record names (sha256)"
+        policy = load_policy(checkpoint)
+    zoos = [cell["zoo"]] if cell["kind"] != "method" else [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
     task = load_task(cell["task"])
     out = {}
     for zoo in zoos:

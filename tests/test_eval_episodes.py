@@ -11,12 +11,13 @@ import pandas as pd
 import pytest
 import torch
 
+from atdrone.benchmark.cells import RandomPolicy
 from atdrone.config import TASK_NAMES, TaskConfig, load_task
 from atdrone.envs import BatchedPursuit
 from atdrone.envs.core import DONE_REASONS
 from atdrone.envs.streams import RowStream, episode_keys, fold, normal, root_key
 from atdrone.policies import GreedyPolicy, VicsekPolicy
-from atdrone.policies.base import Policy
+from atdrone.policies.base import DroneBatch, Policy
 from atdrone.policies.neural import load_policy
 from atdrone.policies.zoo import checkpoint_path, load_zoo
 from atdrone.teams.evaluation import episode_seeds, metrics, run_episodes
@@ -129,6 +130,28 @@ def test_the_batch_size_changes_no_episode_record() -> None:
     narrow = run_episodes(learner, short("4p2e3o"), partners, episodes=20, seed=5, max_envs=6)
     pd.testing.assert_frame_equal(wide, narrow, check_exact=True)
     assert wide["outcome"].nunique() > 1 and wide["length"].nunique() > 10  # episodes that differ
+
+
+def test_the_floors_random_learner_plays_each_episode_as_alone_whatever_the_batch_size() -> None:
+    """The benchmark's floor draws each turn from the drone's key (episode, step, slot), not from a stream the
+    batch's order consumes: a replay of a floor cell gives its record back, however the evaluation batches it."""
+    partners, cfg = sampling_partners(), short("4p2e3o")
+    records = run_episodes(RandomPolicy(0), cfg, partners, episodes=5, seed=11, max_envs=3)
+    reference = pd.DataFrame([alone(RandomPolicy(0), cfg, partners, 11, e) for e in range(5)])
+    pd.testing.assert_frame_equal(records[COLUMNS], reference[COLUMNS], check_dtype=False, check_exact=True)
+    wide = run_episodes(RandomPolicy(1), cfg, partners, episodes=5, seed=11)
+    pd.testing.assert_frame_equal(records, wide, check_exact=True)
+    n = 4000
+    keyed = DroneBatch(
+        obs=np.zeros((n, 1)), env=np.arange(n), slot=np.zeros(n, int), keys=fold(np.arange(n, dtype=np.uint64), 3)
+    )
+    turns = RandomPolicy(0).act(keyed)
+    assert (
+        turns.min() >= -1.0
+        and turns.max() <= 1.0
+        and abs(float(turns.mean())) < 0.03
+        and abs(turns.var() - 1 / 3) < 0.02
+    )
 
 
 def test_a_longer_evaluation_starts_with_the_same_episodes() -> None:

@@ -33,6 +33,7 @@ import numpy as np
 from atdrone.benchmark.budget import plan
 from atdrone.benchmark.config import BenchmarkConfig, check_hola_generations, method_document, parse_benchmark
 from atdrone.config import ConfigError, load_task
+from atdrone.envs.streams import fold, unit
 from atdrone.learn.ppo import ppo_config
 from atdrone.policies.base import DroneBatch, StatelessPolicy
 from atdrone.service.experiment import ExperimentConfig, load_experiment
@@ -171,15 +172,21 @@ def final_member(run_dir: Path, algorithm: str) -> str:
     return str(state["population"][-1])
 
 
+RANDOM_DRAW = 5  # the counter a random drone folds into its key (a neural drone's draws use 0 and 1, VICSEK's 7)
+
+
 class RandomPolicy(StatelessPolicy):
-    """Uniform turns in [-1, 1] from its own seeded generator: the floor of the normalised scores."""
+    """Uniform turns in [-1, 1]: the floor of the normalised scores. Each turn is drawn from the drone's key for
+    its episode, step and slot, so an episode plays the same however the evaluation batches it (its own seeded
+    generator only where a batch carries no keys)."""
 
     def __init__(self, seed: int) -> None:
         self.name = "random"
         self.rng = np.random.default_rng(seed)
 
     def act(self, batch: DroneBatch) -> np.ndarray:
-        return self.rng.uniform(-1.0, 1.0, len(batch)).astype(np.float32)
+        u = self.rng.random(len(batch)) if batch.keys is None else unit(fold(batch.keys, RANDOM_DRAW))
+        return (2.0 * u - 1.0).astype(np.float32)
 
 
 def sha256_file(path: Path) -> str:
