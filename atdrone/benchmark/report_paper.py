@@ -167,9 +167,10 @@ def orderings_text(claims: pd.DataFrame) -> list[str]:
         "",
         "## The paper's orderings",
         "",
-        "SUC of the side the paper puts ahead minus the other, paired over seeds, per task and test zoo: holds "
-        "where the t-based 95 % interval is above 0, reversed where it is below, undecided otherwise. The "
-        "paper's column: its Table 2 differences of the same pair (its SUC is in figures without numbers).",
+        "SUC of the side the paper puts ahead minus the other, paired over seeds, per task and test zoo (mean "
+        "+- standard error [t-based 95 % interval, n - 1 degrees of freedom]): holds where the interval is "
+        "above 0, reversed where it is below, undecided otherwise. The paper's column: its Table 2 differences "
+        "of the same pair (its SUC is in figures without numbers).",
         "",
     ]
     for claim, g in claims.groupby("claim", sort=False):
