@@ -37,7 +37,7 @@ def _same(a: float, b: float) -> bool:
 
 def replay(cfg: Any, record: dict[str, Any]) -> dict[str, dict[str, float]] | str:
     """The record's episode summaries from its evaluation played again, or why not (a line)."""
-    from atdrone.benchmark.cells import EVAL_SEED, RandomPolicy
+    from atdrone.benchmark.cells import EVAL_SEED, RandomPolicy, cell_zoos
     from atdrone.benchmark.episodes import episode_summary
     from atdrone.config import load_task
     from atdrone.policies.neural import load_policy
@@ -53,7 +53,7 @@ def replay(cfg: Any, record: dict[str, Any]) -> dict[str, dict[str, float]] | st
         if hashlib.sha256(checkpoint.read_bytes()).hexdigest() != record["sha256"]:
             return f"skipped: {checkpoint} is not the learner its record names (sha256)"
         policy = load_policy(checkpoint)
-    zoos = [cell["zoo"]] if cell["kind"] != "method" else [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
+    zoos = cell_zoos(cfg, cell["kind"], cell["zoo"])
     task = load_task(cell["task"])
     out = {}
     for zoo in zoos:

@@ -189,6 +189,13 @@ class RandomPolicy(StatelessPolicy):
         return (2.0 * u - 1.0).astype(np.float32)
 
 
+def cell_zoos(cfg: BenchmarkConfig, kind: str, zoo: str | None) -> list[str]:
+    """The zoos a cell's learner is evaluated with: a bound's own zoo; a method's test zoos, then the selection zoo."""
+    if kind != "method":
+        return [str(zoo)]
+    return [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
+
+
 def sha256_file(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -210,7 +217,6 @@ def run_cell(
     workers = 0
     if cell.kind == "floor":
         policy: Any = RandomPolicy(EVAL_SEED + cell.seed)
-        zoos = [cell.zoo]
     else:
         from atdrone.policies.neural import load_policy
         from atdrone.service.driver import run_experiment
@@ -233,7 +239,7 @@ def run_cell(
         )
         policy = load_policy(checkpoint)
         workers = exp.num_workers
-        zoos = [cell.zoo] if cell.kind == "br" else [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
+    zoos = cell_zoos(cfg, cell.kind, cell.zoo)
     metrics: dict[str, dict[str, float]] = {}
     episodes: dict[str, dict[str, float]] = {}
     bench_eval = 0
