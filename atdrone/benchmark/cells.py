@@ -193,7 +193,7 @@ def cell_zoos(cfg: BenchmarkConfig, kind: str, zoo: str | None) -> list[str]:
     """The zoos a cell's learner is evaluated with: a bound's own zoo; a method's test zoos, then the selection zoo."""
     if kind != "method":
         return [str(zoo)]
-    return [*cfg.zoos, *([cfg.select_zoo] if cfg.select_zoo else [])]
+    return cfg.played_zoos
 
 
 def sha256_file(path: Path) -> str:

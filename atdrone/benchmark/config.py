@@ -133,6 +133,11 @@ class BenchmarkConfig:
         return {task: task_version(task) for task in self.tasks}
 
     @property
+    def played_zoos(self) -> list[str]:
+        """The zoos every method's learner is evaluated with: the test zoos, then the selection zoo."""
+        return [*self.zoos, self.select_zoo] if self.select_zoo else list(self.zoos)
+
+    @property
     def folder(self) -> Path:
         """The benchmark's working folder: cells' runs and records."""
         return Path(self.out_dir).resolve() / self.name

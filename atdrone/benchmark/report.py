@@ -70,16 +70,12 @@ def evaluations(records: Sequence[dict[str, Any]]) -> pd.DataFrame:
     return frame.sort_values(["kind", "method", "task", "zoo", "seed"], kind="stable").reset_index(drop=True)
 
 
-def _zoos(cfg: BenchmarkConfig) -> list[str]:
-    return [*cfg.zoos, cfg.select_zoo] if cfg.select_zoo else list(cfg.zoos)
-
-
 def table2(cfg: BenchmarkConfig, frame: pd.DataFrame) -> pd.DataFrame:
     """Mean and std (ddof 1) over seeds of every metric per method x task x zoo (bounds included)."""
     rows = []
     for method in order(cfg):
         for task in cfg.tasks:
-            for zoo in _zoos(cfg):
+            for zoo in cfg.played_zoos:
                 g = frame[(frame.method == method) & (frame.task == task) & (frame.zoo == zoo)]
                 if g.empty:
                     continue
@@ -97,7 +93,7 @@ def paired(cfg: BenchmarkConfig, frame: pd.DataFrame) -> pd.DataFrame:
     for ref in cfg.reference_methods:
         for method in [m for m in cfg.methods if m != ref]:
             for task in cfg.tasks:
-                for zoo in _zoos(cfg):
+                for zoo in cfg.played_zoos:
                     pick = (frame.task == task) & (frame.zoo == zoo)
                     a = frame[pick & (frame.method == method)].set_index("seed")
                     b = frame[pick & (frame.method == ref)].set_index("seed")

@@ -119,7 +119,7 @@ def _header(cfg: BenchmarkConfig, t: Tables) -> list[str]:
 
 
 def _results(cfg: BenchmarkConfig, t: Tables) -> list[str]:
-    zoos = [*cfg.zoos, cfg.select_zoo] if cfg.select_zoo else list(cfg.zoos)
+    zoos = cfg.played_zoos
     lines = [
         "",
         "## Results (Table 2 layout)",
