@@ -6,13 +6,14 @@ from __future__ import annotations
 from types import SimpleNamespace
 from typing import Any
 
+from atdrone.benchmark.cells import Cell, cell_cpu, experiment, load_benchmark
 from atdrone.benchmark.report import budget
 from atdrone.benchmark.report_text import BUDGET_KEYS
 
 
 def _record(method: str, task: str, seed: int, wall: float) -> dict[str, Any]:
     spent = dict.fromkeys(BUDGET_KEYS, 1000)
-    timing = {"train_wall_s": wall - 10.0, "eval_wall_s": 10.0, "wall_s": 5.0, "cpu_s": 2 * wall}
+    timing = {"train_wall_s": wall - 10.0, "eval_wall_s": 10.0, "wall_s": wall, "cpu_s": 2 * wall}
     return {"cell": {"method": method, "task": task}, "name": f"{method}-{task}-s{seed}", "budget": spent,
             "timing": timing}  # fmt: skip
 
@@ -35,3 +36,21 @@ def test_a_cell_over_twice_its_methods_median_wall_time_is_marked_stalled_and_co
     assert rows.loc[("hola", "4p2e5o"), "steady_wall_s"] == 1225.0
     assert list(timing.loc[timing["stalled"], "cell"]) == ["sp-4p2e5o-s1"]
     assert timing.set_index("cell").loc["sp-4p2e5o-s1", "cell_wall_s"] == 1500.0  # generations + evaluation
+
+
+def test_a_resumed_cell_counts_its_earlier_attempts_generations_at_one_cpu_per_rollout_worker() -> None:
+    # last attempt: 50 s of wall time, 130 CPU-s; its generations over both attempts 990 s and its evaluation 10 s,
+    # so the first attempt's generations took 1,000 - 50 = 950 s: 2 workers x 950 s = 1,900 CPU-s more
+    resumed = _record("sp", "4p2e1o", 0, 1000.0)
+    resumed["timing"].update(wall_s=50.0, cpu_s=130.0, workers=2)
+    records = [resumed, _record("sp", "4p2e1o", 1, 1000.0)]
+    table, timing = budget(SimpleNamespace(methods=["sp"]), records)  # type: ignore[arg-type]
+    assert timing.set_index("cell")["cell_cpu_s"].to_dict() == {"sp-4p2e1o-s0": 2030.0, "sp-4p2e1o-s1": 2000.0}
+    assert table.loc[0, "cpu_s"] == 2015.0
+    # a record made before the workers were kept: its cell's experiment says how many
+    cfg = load_benchmark("configs/benchmarks/quick.json")
+    cell = Cell("method", next(iter(cfg.methods)), cfg.tasks[0], 0)
+    workers = experiment(cfg, cell).num_workers
+    timing = {"train_wall_s": 990.0, "eval_wall_s": 10.0, "wall_s": 50.0, "cpu_s": 130.0}
+    old = {"cell": cell.to_dict(), "timing": timing}
+    assert workers > 0 and cell_cpu(cfg, old) == 130.0 + workers * 950.0

@@ -274,6 +274,7 @@ def run_cell(
         "cpu_s": round(wall * workers + time.process_time() - cpu0, 1),
         # the training's generations over every attempt (from the registry), and this evaluation
         "eval_wall_s": round(time.perf_counter() - t_eval, 1),
+        "workers": workers,
         "node": _node_id(),
         "pid": os.getpid(),
     }
@@ -316,3 +317,18 @@ def cell_wall(timing: dict[str, Any]) -> float:
     if "eval_wall_s" in timing:
         return float(timing.get("train_wall_s", 0.0)) + float(timing["eval_wall_s"])
     return float(timing.get("wall_s", float("nan")))
+
+
+def cell_cpu(cfg: BenchmarkConfig, record: Mapping[str, Any]) -> float:
+    """A cell's CPU-seconds: its last attempt's (the rollout workers' reserved CPU-seconds plus the driver's and
+    evaluation's CPU time) and, for a resumed cell, its earlier attempts' generations at one reserved CPU per rollout
+    worker (their drivers' CPU time is not kept). The workers come from the record, else from the cell's experiment."""
+    timing = record.get("timing", {})
+    cpu = float(timing.get("cpu_s", float("nan")))
+    earlier = cell_wall(timing) - float(timing.get("wall_s", float("nan")))
+    if not earlier > 0:  # one attempt: its generations and evaluation lie within its wall time
+        return cpu
+    workers = timing.get("workers")
+    if workers is None:  # a record made before the workers were kept
+        workers = experiment(cfg, Cell(**record["cell"])).num_workers
+    return cpu + int(workers) * earlier

@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 from atdrone.benchmark.bounds import make_bound
-from atdrone.benchmark.cells import STALL_FACTOR, cell_wall
+from atdrone.benchmark.cells import STALL_FACTOR, cell_cpu, cell_wall
 from atdrone.benchmark.config import HOLA_ALGORITHMS, BenchmarkConfig, check_hola_generations
 from atdrone.benchmark.report_figures import FIGURES, family_figure, profile_figure, suc_figure
 from atdrone.benchmark.report_gaps import gap_table
@@ -235,9 +235,9 @@ def budget(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> tuple[pd.
     for rec in records:
         cell, spent = rec["cell"], rec.get("timing", {})
         row = {"method": cell["method"], "task": cell["task"], **{k: rec["budget"].get(k, 0) for k in BUDGET_KEYS}}
-        wall = cell_wall(spent)
-        rows.append({**row, "cpu_s": spent.get("cpu_s", float("nan")), "wall_s": wall})
-        timing.append({"cell": rec["name"], **spent, "cell_wall_s": wall})
+        wall, cpu = cell_wall(spent), cell_cpu(cfg, rec)
+        rows.append({**row, "cpu_s": cpu, "wall_s": wall})
+        timing.append({"cell": rec["name"], **spent, "cell_wall_s": wall, "cell_cpu_s": cpu})
     frame = pd.DataFrame(rows)
     frame["stalled"], frame["steady_wall_s"] = stalled(frame["wall_s"], frame["method"])
     rank = {m: i for i, m in enumerate(order(cfg))}

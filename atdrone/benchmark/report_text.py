@@ -109,7 +109,8 @@ def _header(cfg: BenchmarkConfig, t: Tables) -> list[str]:
         "its method's median (cells run side by side: the job's own wall time is shorter).",
         "",
         "CPU-s: the rollout workers' reserved CPU-seconds (wall time x workers) plus the CPU time of the cell's "
-        "driver and evaluation, of the last attempt of each cell. Wall-s: the training's generations over every "
+        "driver and evaluation in its last attempt; a resumed cell adds its earlier attempts' generations at one "
+        "CPU per rollout worker (their drivers' CPU time is not kept). Wall-s: the training's generations over every "
         "attempt plus the evaluation, where the record keeps them (else the last attempt's; timing.csv has "
         f"each). A cell is stalled when its wall time is over {STALL_FACTOR:g} times its method's median over "
         "all tasks: its processes were stopped or starved for part of it (a paused or busy machine), so its wall "
