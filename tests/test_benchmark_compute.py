@@ -6,7 +6,8 @@ from __future__ import annotations
 from types import SimpleNamespace
 from typing import Any
 
-from atdrone.benchmark.cells import Cell, cell_cpu, experiment, load_benchmark
+from atdrone.benchmark.cells import Cell, cell_cpu, experiment
+from atdrone.benchmark.config import parse_benchmark
 from atdrone.benchmark.report import budget
 from atdrone.benchmark.report_text import BUDGET_KEYS
 
@@ -48,7 +49,7 @@ def test_a_resumed_cell_counts_its_earlier_attempts_generations_at_one_cpu_per_r
     assert timing.set_index("cell")["cell_cpu_s"].to_dict() == {"sp-4p2e1o-s0": 2030.0, "sp-4p2e1o-s1": 2000.0}
     assert table.loc[0, "cpu_s"] == 2015.0
     # a record made before the workers were kept: its cell's experiment says how many
-    cfg = load_benchmark("configs/benchmarks/quick.json")
+    cfg = parse_benchmark("quick")
     cell = Cell("method", next(iter(cfg.methods)), cfg.tasks[0], 0)
     workers = experiment(cfg, cell).num_workers
     timing = {"train_wall_s": 990.0, "eval_wall_s": 10.0, "wall_s": 50.0, "cpu_s": 130.0}

@@ -420,17 +420,57 @@ def _wait(client, job_id: str, timeout: float) -> str:
     return str(status)
 
 
+NO_AGENT = "No available agent to submit job"  # Ray's job API, its head node's job agent not yet registered
+
+
+def _submit(client, timeout: float = 120.0, **job: Any) -> str:
+    """Submit a job, again while the head says its job agent is not up yet: the job API answers before the agent
+    registers, and the head waits only 10 s for it (Ray's WAIT_AVAILABLE_AGENT_TIMEOUT), which a starved host's
+    agent start can outlast (2026-12-01: the suite's submission was refused so). Any other refusal raises."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return str(client.submit_job(**job))
+        except RuntimeError as exc:
+            if NO_AGENT not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(1.0)
+
+
+def test_a_submission_is_made_again_only_while_the_head_has_no_job_agent(monkeypatch) -> None:
+    monkeypatch.setattr(time, "sleep", lambda _s: None)
+
+    class Head:  # answers as Ray's job API does: refused twice while its agent starts, then the job's id
+        def __init__(self, refusal: str) -> None:
+            self.calls, self.refusal = 0, refusal
+
+        def submit_job(self, **job: Any) -> str:
+            self.calls += 1
+            if self.calls <= 2:
+                raise RuntimeError(f"Request failed with status code 500: {self.refusal}.")
+            return "raysubmit_1"
+
+    starting = Head(f"{NO_AGENT}, please try again later.")
+    assert _submit(starting, entrypoint="true") == "raysubmit_1" and starting.calls == 3
+    broken = Head("Traceback: runtime_env invalid")
+    with pytest.raises(RuntimeError, match="runtime_env invalid"):
+        _submit(broken, entrypoint="true")
+    assert broken.calls == 1
+
+
 def test_jobs_submitted_to_a_ray_head_succeed(ray_head: str, tmp_path: Path) -> None:
     from ray.job_submission import JobSubmissionClient
 
     client = JobSubmissionClient(ray_head)
     runtime_env = {"working_dir": str(REPO), "excludes": EXCLUDES}
-    evaluate = client.submit_job(
+    evaluate = _submit(
+        client,
         entrypoint="python jobs/evaluate.py --policy greedy --task 4p2e1o --zoo zoo1 --episodes 10 "
         f"--out-dir {tmp_path}",
         runtime_env=runtime_env,
     )
-    train = client.submit_job(
+    train = _submit(
+        client,
         entrypoint=f"python jobs/train.py configs/experiments/hola_quick.json --name jobtest {TINY_TRAIN} "
         f"--out-dir {tmp_path / 'runs'} --tracking-uri sqlite:///{tmp_path / 'mlflow.db'}",
         runtime_env=runtime_env,
