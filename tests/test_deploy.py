@@ -14,8 +14,10 @@ helpers they share in tests/flight_helpers.py.
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -86,6 +88,12 @@ def test_config_errors_name_the_json_path(tmp_path: Path, registry_member: tuple
         load_deploy(doc)
     doc = sim_doc(tmp_path, registry_member, faults=[{"kind": "link_loss", "at": 1.0}])
     with pytest.raises(ConfigError, match=r"faults\[0\]\.drone"):
+        load_deploy(doc)
+    doc = sim_doc(tmp_path, registry_member, faults=[{"kind": "exception", "at": 0.0, "episode": 1, "step": 3}])
+    with pytest.raises(ConfigError, match=r"^faults\[0\]\.episode: the flight has 1 episode"):
+        load_deploy(doc)
+    doc = sim_doc(tmp_path, registry_member, faults=[{"kind": "exception", "at": 0.0, "step": -2}])
+    with pytest.raises(ConfigError, match=r"^faults\[0\]\.step: must be >= 0"):
         load_deploy(doc)
     doc = sim_doc(tmp_path, registry_member, backend="cflib")
     with pytest.raises(ConfigError, match=r"drones\[0\]\.uri"):
@@ -378,3 +386,34 @@ def test_cli_dry_run_report_and_an_early_end(
     path.write_text(json.dumps(bad))
     assert cli_main(["deploy", str(path)]) == 2
     assert "episodes: must be > 0" in capsys.readouterr().err
+
+
+def test_a_collection_that_holds_the_interpreter_past_the_radio_timeout_loses_no_link(
+    tmp_path: Path, registry_member: tuple[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The flight's one full collection (the heap is then frozen) holds the interpreter: every thread stands still.
+    A long one (a large heap on a slow host) must come before any link is open: with links open, a send waiting
+    on the radio's one-packet queue when it starts gives up 2 s later (cflib's radio driver), cflib drops that
+    link and the drone cannot arm. Here the collection holds the interpreter 2.5 s, and, where links are open, the
+    radio is first jammed for 0.3 s so that a send surely waits (the pose stream sends 50 times a second)."""
+    from atdrone.deploy.simradio import _RADIOS
+
+    hold = 2.5  # s, past the radio driver's 2 s
+    held: list[int] = []  # the open links at the start of each long collection
+    collect = gc.collect
+
+    def slow_collect(*args: Any) -> int:
+        if not held:  # the flight's collection
+            radios = [r for r in _RADIOS.values() if r.links]
+            held.append(sum(len(r.links) for r in radios))
+            for r in radios:
+                r.jam(0.3)
+            time.sleep(0.2)  # the interpreter free: the senders run into the jammed radio
+            ctypes.PyDLL(None).usleep(int(hold * 1e6))  # PyDLL keeps the interpreter through the call
+        return collect(*args)
+
+    monkeypatch.setattr(gc, "collect", slow_collect)
+    result = fly(tmp_path, registry_member, horizon=20)
+    assert result.flown and not result.ended_early, result.ended_early
+    assert held == [0], f"the flight's full collection came with {held} links open"
+    assert result.episodes_flown == 1

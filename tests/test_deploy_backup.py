@@ -309,15 +309,18 @@ def test_a_backup_called_late_in_an_episode_takes_the_slot_for_the_next(
     tmp_path: Path,
     registry_member: tuple[str, str],  # noqa: F811
 ) -> None:
-    """Short episodes: the backup is still on its way when the first ends; between episodes it takes the slot and
-    the transit flies it to the slot's spawn; the second episode is flown with it; every drone lands, apart."""
+    """Short episodes: the backup is called at step 20 of the first (of 30 steps, whatever the host's pace) and is
+    still on its way when it ends; between episodes it takes the slot and the transit flies it to the slot's spawn;
+    the second episode is flown with it; every drone lands, apart."""
     doc = sim_doc(tmp_path, registry_member, horizon=30, episodes=2, backups=BACKUP["backups"])
-    doc["faults"] = [{"kind": "low_battery", "drone": "cf4", "volts": 3.2, "at": FAULT_AT}]
+    doc["faults"] = [{"kind": "low_battery", "drone": "cf4", "volts": 3.2, "at": 0.0, "step": 20}]
     result = fly_doc(tmp_path, doc)
     frame = ticks(result)
     assert not result.ended_early and result.episodes_flown == 2
     landed_softly(result)
     assert min_scaled_separation(frame) >= 1.0
+    fired = frame[frame.events.str.contains("fault:low_battery")]
+    assert list(zip(fired.episode, fired.step, strict=True)) == [(0, 20)], fired[["t", "episode", "step", "drone"]]
     (change,) = result.summary["team_changes"]
     assert change["drone"] == "cf4" and change["backup"] == "cf7" and change["took_slot_episode"] == 1, change
     took = frame[frame.events.str.contains("took_slot:3")]

@@ -10,6 +10,7 @@ import pytest
 
 from atdrone.deploy import crtp
 from atdrone.deploy.clock import Ticker
+from atdrone.deploy.faults import FaultClock
 from atdrone.deploy.landing import RECENT, confirmed_down, cut_by_firmware
 from atdrone.deploy.links import LinkHealth
 from atdrone.deploy.reactions import LANDING_COLUMN, Reaction, Verdict, spare_landing, verdict
@@ -247,3 +248,20 @@ def test_a_drone_locked_before_its_link_is_heard_again_is_reported_cut_in_the_ai
     flight._react(decision, floor)
     assert fleet.stopped == ["c"] and flight.state["c"] == "stopped"
     assert flight.endings()["c"] == "cut in the air at 0.50 m (flying)"
+
+
+def test_a_fault_given_a_step_fires_at_that_step_of_its_episode_whatever_the_time() -> None:
+    fired: list[str] = []
+    faults = FaultClock()
+    faults.add(2.0, "cf1", "timed", lambda: fired.append("timed"))
+    faults.add(0.0, "cf2", "step", lambda: fired.append("step"), episode=1, step=5)
+    faults.add(30.0, "cf3", "late_step", lambda: fired.append("late_step"), episode=0, step=3)
+    assert faults.fire(1.0, 0, 4) == [] and fired == []
+    assert faults.fire(2.0, 0, -1) == [("cf1", "fault:timed")]  # a time: on any tick once it has passed
+    assert faults.fire(50.0, 0, 20) == [("cf3", "fault:late_step")]  # a step, once its time has passed too
+    assert faults.fire(60.0, 1, -1) == [] and faults.fire(61.0, 1, 4) == []  # the episode's transit, step 4
+    assert faults.fire(61.1, 1, 5) == [("cf2", "fault:step")] and fired == ["timed", "late_step", "step"]
+    assert faults.pending == []
+    # an episode that ended before the step: the fault fires on the first tick after it
+    faults.add(0.0, "", "early_end", lambda: fired.append("early_end"), episode=0, step=25)
+    assert faults.fire(9.0, 0, 12) == [] and faults.fire(9.1, 1, -1) == [("", "fault:early_end")]

@@ -161,6 +161,10 @@ class SimSettings:
 class Fault:
     """A fault injected on the sim backend at clock time ``at`` (seconds since the loop started).
 
+    With ``step`` (>= 0) it fires at that step of episode ``episode`` (from 0) instead, once ``at`` has passed
+    (or on the first tick after that episode when it ended sooner): a time depends on the host's pace (how long
+    the takeoff and the flights to the spawn took), a step does not.
+
     kind: mocap_dropout (``drone`` or the whole system when empty, for ``duration`` s),
     mocap_freeze (frames keep arriving with ``drone``'s pose, or every body's when empty,
     as it was, for ``duration`` s), link_loss (``drone``, for good), link_dropout
@@ -181,6 +185,8 @@ class Fault:
     accel: tuple[float, float, float] = (0.5, 0.0, 0.0)
     volts: float = field(default=3.2, metadata=_check(_positive))
     signal: Literal["SIGINT", "SIGTERM"] = "SIGINT"
+    episode: int = field(default=0, metadata=_check(_non_negative))
+    step: int = field(default=-1, metadata=_check(lambda v: None if v >= -1 else "must be >= 0 (or -1: at ``at``)"))
 
 
 @dataclass(frozen=True)
@@ -308,6 +314,8 @@ def validate(cfg: DeployConfig) -> None:
             raise ConfigError(f"faults[{i}].drone", f"no drone {f.drone!r} (drones: {', '.join(names)})")
         if f.kind in ("link_loss", "link_dropout", "pose_blocked", "drift", "low_battery") and not f.drone:
             raise ConfigError(f"faults[{i}].drone", f"a {f.kind} fault names its drone")
+        if f.step >= 0 and f.episode >= cfg.episodes:
+            raise ConfigError(f"faults[{i}].episode", f"the flight has {cfg.episodes} episode(s), from 0")
     lo, hi = cfg.shield.z_limits
     if not lo <= cfg.flight_height <= hi:
         raise ConfigError("flight_height", f"must lie within shield.z_limits {[lo, hi]}, got {cfg.flight_height}")

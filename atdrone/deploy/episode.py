@@ -111,7 +111,7 @@ class Episodes(Backups, Landing, Sequencing):
         prev_dist: np.ndarray | None = None
         held_for = np.zeros(E, dtype=bool)  # evader drones the shield held with a pursuer last tick
         while not outcome:
-            tick = self._begin_tick()
+            tick = self._begin_tick(steps)
             lat: dict[str, float] = {}
             c0 = time.perf_counter()
             pos, yaw, age = self.measured()

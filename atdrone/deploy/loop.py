@@ -33,7 +33,6 @@ episode), :mod:`~atdrone.deploy.sequence` (between episodes) and
 from __future__ import annotations
 
 import concurrent.futures
-import gc
 import math
 import sys
 from collections import deque
@@ -210,15 +209,11 @@ class Flight(Episodes):
         Never raises for what happens in flight: an exception is kept in :attr:`error`, its
         one-line reason in :attr:`aborted`, and every drone lands first.
         """
-        # the heap as it is before takeoff leaves the collector's view: a full collection in a process that has
-        # loaded torch, pandas and MLflow stops every thread for up to 0.37 s (measured), past the stale-pose
-        # limit of the tests' doubled clock; in flight only objects made since are scanned
-        gc.collect()
-        gc.freeze()
-        gc.disable()  # and no collection at all in flight: one stops every thread, the heartbeat's too
+        # no collection in flight: the job made its one full collection before the links opened and froze the
+        # heap (atdrone.deploy.job.collector_paused)
         switch = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH)
-        # the pose stream's threads stood still through the collection: fresh poses before the first tick
+        # fresh poses before the first tick (the preflight's checks held the interpreter a while)
         fresh_by = self.clock.now() + 2.0
         while self.clock.now() < fresh_by and not np.all(self.measured()[2] < self.shield_cfg.stale_pose / 2):
             self.clock.sleep(0.02)
@@ -255,8 +250,6 @@ class Flight(Episodes):
             self.bridge.stop_heartbeat()
             self.policy.close()
             self._worker.shutdown(wait=False, cancel_futures=True)
-            gc.unfreeze()
-            gc.enable()
             sys.setswitchinterval(switch)
         if self.stop and not self.aborted:
             self.aborted = f"stop requested ({self.stop.signal})"
@@ -277,15 +270,16 @@ class Flight(Episodes):
         self.prev_setpoint[:] = np.nan  # the first transit tick takes over from the planner, through the shield
 
     # ----------------------------------------------------------------- ticks
-    def _begin_tick(self) -> float:
-        """Wait for the next tick, beat the heartbeat, fire due faults; the tick's clock time."""
+    def _begin_tick(self, step: int = -1) -> float:
+        """Wait for the next tick (one flying ``step`` of the episode; -1: none), beat the heartbeat, fire due
+        faults; the tick's clock time."""
         tick = self.ticks.wait()
         self.tick_t = tick  # the tick's clock time, for what happens in it (the log's rows carry it)
         self.bridge.beat()
         if self.link_health.host_paused(self.ticks.late_by, self.dt):
             self._pause_caught = tick
             self.notes.setdefault("", []).append("host_pause")
-        for drone, note in self.faults.fire(tick - self.t0):
+        for drone, note in self.faults.fire(tick - self.t0, self.episode, step):
             for n in [drone] if drone else self.names:
                 self.notes.setdefault(n, []).append(note)
         if self.faults.hang:
