@@ -1,8 +1,9 @@
 """The simulator's step is bit-identical to the recorded one: 1,500 steps on each of the four tasks.
 
 Every output of every step (observations, rewards, dones, every info array) and the final
-state, in the fields it had then (``RECORDED_STATE``), are hashed; the digests were recorded from the step before its speed-up (issue 26,
-commit 081bc2c). A faster step must reproduce them to the bit. The pursuers chase the
+state, in the fields it had then (``RECORDED_STATE``), are hashed; the digests were recorded
+from the step before its speed-up (issue 26, commit 081bc2c). A faster step must reproduce
+them to the bit. The pursuers chase the
 nearest evader with noise (so captures, collisions, timeouts and auto-resets all happen);
 the "-free" cases enable the proximity bands, let collisions go on and end episodes
 after 150 steps, so pursuers capture every evader and episodes time out.
