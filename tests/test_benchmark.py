@@ -23,6 +23,9 @@ from conftest import tiny_benchmark
 
 from atdrone.benchmark.cells import load_benchmark
 from atdrone.benchmark.job import STATE_FILE, run_benchmark
+from atdrone.benchmark.weights import replay
+from atdrone.hostinfo import float_kernels
+from atdrone.resolve import WEIGHTS_ENV
 
 REPO = Path(__file__).resolve().parent.parent
 CSVS = ("evaluations", "table", "paired", "normalised", "aggregate", "improvement", "protocols")
@@ -80,7 +83,7 @@ def _report(results: Path, name: str) -> dict[str, Any]:
 # slow 2-core host with the flights' busy loop on one core (2026-11-30)
 @pytest.mark.timeout(1800)
 def test_a_stopped_then_killed_benchmark_finishes_only_its_missing_cells_and_reports_as_an_uninterrupted_one(
-    local_ray, tmp_path, mlflow_store, capsys
+    local_ray, tmp_path, mlflow_store, capsys, monkeypatch
 ):
     uri = mlflow_store(tmp_path / "mlflow.db")
     whole, killed = tiny_benchmark(tmp_path, "whole"), tiny_benchmark(tmp_path, "killed")
@@ -157,6 +160,12 @@ def test_a_stopped_then_killed_benchmark_finishes_only_its_missing_cells_and_rep
     manifests = [
         json.loads((Path(d["results_dir"]) / "weights" / "sp" / "4p2e1o.json").read_text()) for d in (killed, whole)
     ]
+    # the published weight names the float kernels that measured it and, on them, plays its metrics bit for bit
+    monkeypatch.setenv(WEIGHTS_ENV, killed["results_dir"])
+    assert manifests[0]["measured_on"] == float_kernels()
+    for zoo, metrics in manifests[0]["metrics"].items():
+        played = replay(manifests[0], zoo, killed["eval_episodes"])
+        assert played == pytest.approx(metrics, rel=0, abs=0, nan_ok=True), zoo
     for m in manifests:  # the file's own digest covers its header (creation time, run name): not compared
         m.pop("benchmark"), m.pop("sha256"), m.pop("reproduce")  # the commands name the benchmark
     assert manifests[0] == manifests[1]

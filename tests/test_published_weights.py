@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from atdrone.benchmark.cells import EVAL_SEED
+from atdrone.benchmark.weights import replay
+from atdrone.hostinfo import float_kernels
 from atdrone.resolve import resolve_policy
-from atdrone.teams.evaluation import evaluate
+from atdrone.teams.evaluation import wilson_interval
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results"
@@ -52,42 +53,12 @@ def test_the_quick_benchmark_publishes_a_weight_per_method_and_task_each_loading
 def test_published_weights_play_their_manifest_metrics(manifest: Path, zoo: str) -> None:
     doc = json.loads(manifest.read_text())
     episodes = json.loads((REPO / "configs" / "benchmarks" / f"{doc['benchmark']}.json").read_text())["eval_episodes"]
-    # weights measured before the zoos were made per task name the documents of the partners they played
-    played = REPO / doc["zoo_documents"] / f"{zoo}.json" if "zoo_documents" in doc else zoo
-    result = evaluate(
-        resolve_policy(_name(doc)), doc["task"], played, episodes=episodes, seeds=[EVAL_SEED + doc["seed"]]
-    )
-    if doc.get("cpu") == _cpu():  # the machine kind that measured them: bit for bit
-        assert result.mean == pytest.approx(doc["metrics"][zoo], rel=0, abs=1e-9, nan_ok=True), (_name(doc), zoo)
+    played = replay(doc, zoo, episodes)
+    if doc.get("measured_on") == float_kernels():  # the float kernels that measured them: bit for bit
+        assert played == pytest.approx(doc["metrics"][zoo], rel=0, abs=1e-9, nan_ok=True), (_name(doc), zoo)
         return
     # another CPU's float kernels may turn an episode: SUC and COL within the 95 % interval over the episodes
     # (measured: on this project's 2-core machine of 2026-11-28, sp/4p3e5o/zoo2 plays SUC 3 % where 5 % was kept)
-    from atdrone.teams.evaluation import wilson_interval
-
     for metric in ("SUC", "COL"):
         low, high = wilson_interval(round(doc["metrics"][zoo][metric] * episodes / 100.0), episodes)
-        assert low - 1e-9 <= result.mean[metric] <= high + 1e-9, (_name(doc), zoo, metric, result.mean[metric])
-
-
-def _cpu() -> str:
-    """The CPU's model name (what a manifest measured on one machine kind would record as ``cpu``)."""
-    import platform
-
-    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else ""
-    names = [line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith("model name")]
-    return names[0] if names else platform.processor()
-
-
-def test_a_smoke_tests_weights_answer_the_short_name_only_when_no_other_benchmark_has_them(tmp_path, monkeypatch):
-    from atdrone.resolve import WEIGHTS_ENV, resolve
-
-    for bench, smoke in (("quick", True), ("paper_budget", False)):
-        folder = tmp_path / bench / "weights" / "sp"
-        folder.mkdir(parents=True)
-        source = RESULTS / "quick" / "weights" / "sp" / "4p2e1o"
-        (folder / "4p2e1o.pt").write_bytes(source.with_suffix(".pt").read_bytes())
-        doc = {**json.loads(source.with_suffix(".json").read_text()), "benchmark": bench, "smoke_test": smoke}
-        (folder / "4p2e1o.json").write_text(json.dumps(doc))
-    monkeypatch.setenv(WEIGHTS_ENV, f"{tmp_path / 'quick'}:{tmp_path / 'paper_budget'}")
-    assert resolve("weights:sp/4p2e1o").checkpoint == tmp_path / "paper_budget" / "weights" / "sp" / "4p2e1o.pt"
-    assert resolve("weights:quick/sp/4p2e1o").checkpoint == tmp_path / "quick" / "weights" / "sp" / "4p2e1o.pt"
+        assert low - 1e-9 <= played[metric] <= high + 1e-9, (_name(doc), zoo, metric, played[metric])

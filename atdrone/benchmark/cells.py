@@ -207,6 +207,7 @@ def run_cell(
     import torch
 
     from atdrone.benchmark.episodes import episode_summary
+    from atdrone.hostinfo import float_kernels
     from atdrone.teams.evaluation import evaluate
 
     torch.set_num_threads(1)
@@ -277,6 +278,7 @@ def run_cell(
         "workers": workers,
         "node": _node_id(),
         "pid": os.getpid(),
+        "machine": float_kernels(),  # where the metrics replay bit for bit (atdrone.hostinfo)
     }
     if cell.kind != "floor":
         timing["train_wall_s"] = round(train_wall, 1)

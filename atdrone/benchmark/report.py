@@ -237,7 +237,16 @@ def budget(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> tuple[pd.
         row = {"method": cell["method"], "task": cell["task"], **{k: rec["budget"].get(k, 0) for k in BUDGET_KEYS}}
         wall, cpu = cell_wall(spent), cell_cpu(cfg, rec)
         rows.append({**row, "cpu_s": cpu, "wall_s": wall})
-        timing.append({"cell": rec["name"], **spent, "cell_wall_s": wall, "cell_cpu_s": cpu})
+        machine = spent.get("machine", {})  # where the metrics replay bit for bit (older records: none)
+        timing.append(
+            {
+                "cell": rec["name"],
+                **{k: v for k, v in spent.items() if k != "machine"},
+                "cell_wall_s": wall,
+                "cell_cpu_s": cpu,
+                "machine": "; ".join(f"{k} {v}" for k, v in machine.items()),
+            }
+        )
     frame = pd.DataFrame(rows)
     frame["stalled"], frame["steady_wall_s"] = stalled(frame["wall_s"], frame["method"])
     rank = {m: i for i, m in enumerate(order(cfg))}

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from atdrone.benchmark.config import BenchmarkConfig
@@ -27,6 +28,8 @@ from atdrone.fileio import atomic_write_bytes
 from atdrone.models.checkpoint import read_header
 from atdrone.resolve import weights_checkpoint, weights_manifest
 from atdrone.rundir import RunError
+
+REPO = Path(__file__).resolve().parents[2]  # a manifest's ``zoo_documents`` are relative to it
 
 
 def choose(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -69,6 +72,8 @@ def keep_weights(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> lis
                 "selected_on": {"zoo": zoo, **({k: best["metrics"][zoo][k] for k in ("SUC", "REW")} if zoo else {})},
                 "budget": {**best["budget"], "env_steps_planned": cfg.env_steps},
                 "metrics": best["metrics"],
+                # the host whose float kernels measured them (None: an older record that did not keep it)
+                "measured_on": best.get("timing", {}).get("machine"),
             }
             manifest.update(card(cfg, method, best))
             text = json.dumps(manifest, indent=2, sort_keys=True)
@@ -120,6 +125,7 @@ def card_text(m: dict[str, Any]) -> str:
         f"(planned {m['budget'].get('env_steps_planned', 0):,})",
         f"- PPO: {json.dumps(m.get('ppo', {}), sort_keys=True)}",
         f"- partners: zoo version {m.get('zoo_version') or 'unrecorded'}; file sha256 {m['sha256']}",
+        f"- measured on: {_machine_text(m.get('measured_on'))}",
         "",
         f"Evaluated with {m['eval_episodes']} episodes per zoo (evaluation seed {m['eval_seed']}); "
         "intervals over the episodes:",
@@ -137,3 +143,37 @@ def card_text(m: dict[str, Any]) -> str:
         lines.append(f"| {zoo} | {cell('SUC')} | {cell('COL')} | {v['AST']:.1f} | {v['REW']:.2f} |")
     lines += ["", "Reproduce:", "", f"    {m['reproduce']['train']}", f"    {m['reproduce']['evaluate']}", ""]
     return "\n".join(lines)
+
+
+def _machine_text(machine: dict[str, str] | None) -> str:
+    if not machine:
+        return "a host its record does not name (the metrics replay within their intervals elsewhere)"
+    return "; ".join(f"{k} {v}" for k, v in machine.items()) + " (bit for bit on a host with these)"
+
+
+def replay(manifest: Mapping[str, Any], zoo: str, episodes: int) -> dict[str, float]:
+    """``manifest``'s weight played again on ``zoo`` with the episodes its benchmark played (its evaluation
+    seed, ``episodes`` episodes): SUC, COL, AST and REW, to compare with its metrics."""
+    name = f"weights:{manifest['benchmark']}/{manifest['method']}/{manifest['task']}"
+    # weights measured before the zoos were made per task name the documents of the partners they played
+    docs = manifest.get("zoo_documents")
+    played: str | Path = REPO / str(docs) / f"{zoo}.json" if docs else zoo
+    return play_as_cell(name, str(manifest["task"]), played, int(manifest["seed"]), episodes)
+
+
+def play_as_cell(policy: str | Path, task: str, zoo: str | Path, seed: int, episodes: int) -> dict[str, float]:
+    """The metrics of ``policy`` (any name :mod:`atdrone.resolve` knows) on ``zoo`` as a benchmark cell of seed
+    ``seed`` evaluates it: ``episodes`` episodes of its evaluation seed, on one torch thread."""
+    import torch
+
+    from atdrone.benchmark.cells import EVAL_SEED
+    from atdrone.resolve import resolve_policy
+    from atdrone.teams.evaluation import evaluate
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        result = evaluate(resolve_policy(policy), task, zoo, episodes=episodes, seeds=[EVAL_SEED + seed])
+    finally:
+        torch.set_num_threads(threads)
+    return {k: float(v) for k, v in result.mean.items()}
