@@ -4,9 +4,9 @@ benchmark played (its evaluation seed and episode count), and is compared with i
 Prints JSON: this host's float kernels (:func:`atdrone.hostinfo.float_kernels`), and per weight and zoo the
 manifest's and the replay's SUC, COL, AST and REW, whether they are equal to the last bit, and whether the
 manifest was measured on float kernels equal to this host's (where they must be). Exit 1 when a weight measured
-on this host's kernels plays other metrics. About 3 s of one core per zoo at 500 episodes (a paper-budget
-weight: 4 zoos); the quick benchmark's 32 weights (5 zoos, 100 episodes each) about 2 minutes. Its
-``differs`` says per metric how many replays differ and by how much at most.
+on this host's kernels plays other metrics. A zoo of 500 episodes takes 3-5 s of one core (a paper-budget
+weight: 4 zoos); the quick benchmark's 32 weights (5 zoos, 100 episodes each) took 6 minutes beside a running
+grid. Its ``differs`` says per metric how many replays differ and by how much at most.
 
 With ``--cells GLOB`` it replays a grid's cell records instead (``runs/benchmarks/<benchmark>/cells/``, their
 learners restored beside them; floors are skipped): whether the records of cells run on other machines replay on

@@ -19,6 +19,7 @@ from atdrone.benchmark.cells import Cell, cells, experiment_document, load_bench
 from atdrone.benchmark.report import write_report
 from atdrone.benchmark.weights import keep_weights
 from atdrone.config import ConfigError
+from atdrone.hostinfo import float_kernels
 from atdrone.policies.zoo import checkpoint_path, load_zoo
 from atdrone.resolve import PolicyNotFound, resolve
 
@@ -67,7 +68,8 @@ def _records(cfg: Any, tmp_path: Path) -> list[dict[str, Any]]:
                 algorithm=cell.method, member="m", checkpoint=str(path.relative_to(cfg.folder)), sha256=digest
             )
         budget = {"env_steps": 1024, "learner_samples": 2048, "eval_env_steps": 0, "benchmark_eval_env_steps": 99}
-        record.update(metrics=metrics, budget=budget, timing={"wall_s": 1.0, "cpu_s": 2.0}, generations=1)
+        timing = {"wall_s": 1.0, "cpu_s": 2.0, "machine": float_kernels()}  # evaluated here
+        record.update(metrics=metrics, budget=budget, timing=timing, generations=1)
         out.append(record)
     return out
 
@@ -135,6 +137,30 @@ def test_protocol_results_make_their_own_table_and_leave_the_others_as_they_were
     assert row["n"] == len(seeds) and row["SUC_mean"] == pytest.approx(20.0 + np.mean(seeds))
     assert row["REC_std"] == pytest.approx(np.std(seeds, ddof=1))
     assert "## Team changes" in files["report.md"].read_text()
+
+
+def test_a_weight_measured_on_other_float_kernels_is_played_again_for_its_card(made_up) -> None:
+    """The card's metrics are what the weight plays on the host writing it; the record's stay as cell_metrics."""
+    from atdrone.benchmark.weights import play_as_cell
+
+    cfg, records = made_up
+    easy = [r for r in records if r["cell"]["task"] == "4p2e1o"]  # the made-up learners are 4p2e1o drones
+    elsewhere = {**float_kernels(), "cpu": "another CPU"}
+    for r in easy:
+        r["timing"]["machine"] = elsewhere
+    said: list[str] = []
+    manifests = keep_weights(cfg, easy, said.append)
+    assert len(manifests) == len(said) == 2  # sp and hola on 4p2e1o, each played again
+    for m in manifests:
+        record = next(r for r in easy if r["cell"]["method"] == m["method"] and r["cell"]["seed"] == m["seed"])
+        assert m["cell_metrics"] == record["metrics"] and m["cell_measured_on"] == elsewhere
+        assert m["measured_on"] == float_kernels() and set(m["metrics"]) == set(record["metrics"])
+        path = cfg.folder / record["checkpoint"]
+        for zoo, got in m["metrics"].items():
+            assert got == play_as_cell(path, "4p2e1o", zoo, m["seed"], cfg.eval_episodes)
+            assert got["SUC"] != record["metrics"][zoo]["SUC"]  # the made-up numbers are not what it plays
+        text = (cfg.results / "weights" / m["method"] / "4p2e1o.md").read_text()
+        assert "cpu another CPU" in text and f"cpu {float_kernels()['cpu']}" in text
 
 
 def test_weights_are_chosen_on_the_validation_zoo_and_load_by_name(made_up, monkeypatch) -> None:

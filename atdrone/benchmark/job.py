@@ -130,7 +130,8 @@ def run_benchmark(
         files = write_report(cfg, records)
         # the bounds of the normalised scores, with the zoo version they were measured with
         files["bounds"] = write_bounds(bounds_from_records(records, cfg.eval_episodes), cfg.results / "bounds.json")
-        manifests = keep_weights(cfg, records)
+        say = (lambda line: print(f"[{cfg.name}] {line}", flush=True)) if progress else None
+        manifests = keep_weights(cfg, records, say)
         _log_results(tracker, cfg, records, table2)
         for path in files.values():
             tracker.log_artifact(path, "report")

@@ -5,8 +5,9 @@ selection (validation) zoo, copied into the results folder with a manifest.
 header + tensors, digest-checked when loaded) and ``<task>.json`` its manifest: method,
 task, seed, algorithm, member, the budget it was trained with, the sha256 of the file
 (and of its tensors alone, ``weights_sha256``, which the header carries),
-its metrics on every zoo and what it was chosen on; as a model card also the PPO setting,
-the zoo version of its task, 95 % intervals over the evaluation episodes (SUC and COL,
+its metrics on every zoo with the float kernels that measured them (``measured_on``: the host writing it, which
+plays them again where its cell was evaluated elsewhere) and what it was chosen on; as a model card also the PPO
+setting, the zoo version of its task, 95 % intervals over the evaluation episodes (SUC and COL,
 Wilson's) and the commands that reproduce it, written out as ``<task>.md``. A smoke
 test's weights say so (``smoke_test``). Only the selection zoo's scores
 choose (SUC, then REW, then the lower seed), never a test zoo's. The manifest is
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,8 +44,18 @@ def choose(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> dict[str,
     return max(records, key=key)
 
 
-def keep_weights(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Copy the chosen final learner of every (method, task) into the results folder; the manifests."""
+def keep_weights(
+    cfg: BenchmarkConfig, records: Sequence[dict[str, Any]], say: Callable[[str], None] | None = None
+) -> list[dict[str, Any]]:
+    """Copy the chosen final learner of every (method, task) into the results folder; the manifests.
+
+    A card's metrics are those its weight plays on the host that writes it: a chosen cell evaluated on other float
+    kernels (or on kernels its record does not name) is played again here on every zoo of its record, as its cell
+    played it (:func:`play_as_cell`), and its record's metrics, those of the report, are kept as ``cell_metrics``.
+    ``say`` hears a line per weight played again."""
+    from atdrone.hostinfo import float_kernels
+
+    here = float_kernels()
     manifests = []
     for method in cfg.methods:
         for task in cfg.tasks:
@@ -72,10 +83,16 @@ def keep_weights(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> lis
                 "selected_on": {"zoo": zoo, **({k: best["metrics"][zoo][k] for k in ("SUC", "REW")} if zoo else {})},
                 "budget": {**best["budget"], "env_steps_planned": cfg.env_steps},
                 "metrics": best["metrics"],
-                # the host whose float kernels measured them (None: an older record that did not keep it)
-                "measured_on": best.get("timing", {}).get("machine"),
+                "measured_on": best.get("timing", {}).get("machine"),  # None: a record that does not name it
             }
-            manifest.update(card(cfg, method, best))
+            if manifest["measured_on"] != here:  # the card's metrics as this host plays them, bit for bit
+                if say is not None:
+                    say(f"weights {method}/{task}: seed {best['cell']['seed']} measured elsewhere, played again here")
+                seed, path = int(best["cell"]["seed"]), cfg.folder / best["checkpoint"]
+                played = {z: play_as_cell(path, task, z, seed, cfg.eval_episodes) for z in best["metrics"]}
+                cell = {"cell_metrics": best["metrics"], "cell_measured_on": manifest["measured_on"]}
+                manifest.update(metrics=played, measured_on=here, **cell)
+            manifest.update(card(cfg, method, best, manifest["metrics"]))
             text = json.dumps(manifest, indent=2, sort_keys=True)
             atomic_write_bytes(weights_manifest(cfg.results, method, task), text.encode())
             card_path = weights_manifest(cfg.results, method, task).with_suffix(".md")
@@ -84,8 +101,11 @@ def keep_weights(cfg: BenchmarkConfig, records: Sequence[dict[str, Any]]) -> lis
     return manifests
 
 
-def card(cfg: BenchmarkConfig, method: str, best: dict[str, Any]) -> dict[str, Any]:
-    """The model card's fields beyond the manifest: setting, partners, intervals, how to reproduce."""
+def card(
+    cfg: BenchmarkConfig, method: str, best: dict[str, Any], metrics: Mapping[str, Mapping[str, float]]
+) -> dict[str, Any]:
+    """The model card's fields beyond the manifest: setting, partners, intervals of ``metrics``, how to
+    reproduce."""
     from atdrone.benchmark.cells import EVAL_SEED
     from atdrone.teams.evaluation import wilson_interval
 
@@ -93,9 +113,9 @@ def card(cfg: BenchmarkConfig, method: str, best: dict[str, Any]) -> dict[str, A
     seed, task = int(best["cell"]["seed"]), str(best["cell"]["task"])
     intervals = {
         zoo: {m: list(wilson_interval(round(values[m] * n / 100.0), n)) for m in ("SUC", "COL") if m in values}
-        for zoo, values in best["metrics"].items()
+        for zoo, values in metrics.items()
     }
-    zoos = ",".join(best["metrics"])
+    zoos = ",".join(metrics)
     return {
         "smoke_test": bool(getattr(cfg, "smoke_test", False)),
         "ppo": cfg.experiment.get("ppo", {}),
@@ -126,6 +146,7 @@ def card_text(m: dict[str, Any]) -> str:
         f"- PPO: {json.dumps(m.get('ppo', {}), sort_keys=True)}",
         f"- partners: zoo version {m.get('zoo_version') or 'unrecorded'}; file sha256 {m['sha256']}",
         f"- measured on: {_machine_text(m.get('measured_on'))}",
+        *([_cell_text(m)] if "cell_metrics" in m else []),
         "",
         f"Evaluated with {m['eval_episodes']} episodes per zoo (evaluation seed {m['eval_seed']}); "
         "intervals over the episodes:",
@@ -147,8 +168,17 @@ def card_text(m: dict[str, Any]) -> str:
 
 def _machine_text(machine: dict[str, str] | None) -> str:
     if not machine:
-        return "a host its record does not name (the metrics replay within their intervals elsewhere)"
-    return "; ".join(f"{k} {v}" for k, v in machine.items()) + " (bit for bit on a host with these)"
+        return "a host its record does not name (elsewhere, the metrics replay within their intervals)"
+    return "; ".join(f"{k} {v}" for k, v in machine.items()) + " (they replay bit for bit on a host with these)"
+
+
+def _cell_text(m: dict[str, Any]) -> str:
+    """The line that says where the report's numbers of this seed came from (the card's were played again)."""
+    diffs = [abs(m["cell_metrics"][z][k] - v) for z, vs in m["metrics"].items() for k, v in vs.items() if k != "AST"]
+    return (
+        f"- the report's numbers for this seed were measured on {_machine_text(m.get('cell_measured_on'))}; "
+        f"played again here, SUC, COL and REW differ from them by at most {max(diffs, default=0.0):.3g}"
+    )
 
 
 def replay(manifest: Mapping[str, Any], zoo: str, episodes: int) -> dict[str, float]:
