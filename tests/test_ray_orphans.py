@@ -88,10 +88,47 @@ def test_agents_a_killed_drivers_ray_left_are_ended_by_the_next_start_and_live_r
         pytest.fail(f"in {ATTEMPTS} attempts the next start never said it ended the orphans: {ended.stderr[-2000:]}")
     # the line names the sessions of all it ended: the dead one alone
     assert f"Ray process(es) a killed run left behind ({session}):" in ended.stderr, ended.stderr[-2000:]
-    # the live Rays on this host (the suite's own, another run's) are nothing to end
+    # the live Rays on this host (the suite's own, another run's, one shutting down) are nothing to end; another
+    # test's killed driver may have left orphans of its own meanwhile: those it may end
     killed: list[int] = []
     monkeypatch.setattr(rayclean.os, "kill", lambda pid, sig: killed.append(pid))
-    assert rayclean.clean_orphans() == [] and killed == []
+    would_end = rayclean.clean_orphans()
+    assert sorted(killed) == sorted(p.pid for p in would_end)
+    assert not [p for p in would_end if _driver_alive(p.session)], would_end
+
+
+def _driver_alive(session: str) -> bool:
+    """Whether the process that started ``session`` lives and still parents some of its processes."""
+    starter = int(session.rsplit("_", 1)[-1])
+    return _alive(starter) and any(p.ppid == starter for p in rayclean.ray_processes() if p.session == session)
+
+
+def test_a_drivers_ray_whose_raylet_and_gcs_are_gone_while_the_driver_lives_is_no_orphan():
+    """``ray.shutdown()`` ends the raylet and the GCS first, then the processes the driver started itself, one by
+    one: on a busy host another run's start sees that session for seconds with no daemon alive. Here the driver is
+    stopped in that state (its daemons killed, itself alive): nothing of its session is an orphan until it dies."""
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    driver = subprocess.Popen([sys.executable, "-c", DRIVER], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert driver.stdout is not None
+        session = json.loads(driver.stdout.readline())["session"]
+        mine = lambda: [p for p in rayclean.ray_processes() if p.session == session]
+        os.kill(driver.pid, signal.SIGSTOP)
+        daemons = [p.pid for p in mine() if p.daemon]
+        assert len(daemons) == 2, mine()
+        for pid in daemons:
+            os.kill(pid, signal.SIGKILL)
+        _wait(lambda: not any(_alive(pid) for pid in daemons), 30, "the GCS and raylet live on")
+        children = [p for p in mine() if p.ppid == driver.pid]
+        assert children, mine()  # the log monitor, dashboard, autoscaler monitor: the driver's own
+        assert not [p for p in rayclean.orphans() if p.session == session]
+    finally:
+        driver.kill()
+        driver.wait()
+    # the driver dead, what it left is an orphan (and ended, as the next start would)
+    _wait(lambda: any(p.session == session for p in rayclean.orphans()) or not mine(), 30, "nothing left to see")
+    rayclean.clean_orphans()
+    _wait(lambda: not mine(), 30, "its processes were never ended")
 
 
 def test_a_live_ray_installed_under_a_long_path_is_no_orphan(tmp_path):

@@ -4,8 +4,9 @@ A driver killed with SIGKILL takes its GCS and raylet with it, but their childre
 runtime-env agents, idle workers) notice only when they next look, and on a busy host they live on
 for minutes as orphans, holding memory and a share of the CPU. :func:`clean_orphans` ends them: every
 Ray process of this user whose session (the ``/tmp/ray/session_*`` folder in its command line or its
-open files) has no live raylet or GCS left. A process of a live session (another run's local Ray, a
-``ray start`` head) is never touched, nor a process whose session cannot be read. Linux only (``/proc``);
+open files) has no live raylet or GCS left and no live driver. A process of a live session (another run's
+local Ray, a ``ray start`` head, a driver's Ray shutting down) is never touched, nor a process whose session
+cannot be read. Linux only (``/proc``);
 elsewhere it finds nothing.
 """
 
@@ -114,14 +115,26 @@ def ray_processes() -> list[RayProcess]:
     return found
 
 
-def orphans() -> list[RayProcess]:
-    """The Ray processes whose session has neither a raylet nor a GCS alive.
+def _starter(session: str) -> int:
+    """The pid of the process that started a session: the last field of its name (Ray names it
+    ``session_<date>_<time>_<microseconds>_<pid>``); 0 when the name has none."""
+    last = session.rsplit("_", 1)[-1]
+    return int(last) if last.isdigit() else 0
 
-    The daemons are looked for again after the processes are listed: a Ray starting meanwhile starts its
-    GCS before anything else of its session, so a process listed is never taken for an orphan for want of
-    a daemon that started while the list was read."""
+
+def orphans() -> list[RayProcess]:
+    """The Ray processes whose session has neither a raylet nor a GCS alive, nor its driver.
+
+    A driver's ``ray.shutdown()`` ends its raylet and GCS first, then one by one the processes it started itself
+    (log monitor, dashboard, autoscaler monitor), waiting up to seconds for each on a busy host: meanwhile they
+    are a live driver's children, never orphans. A process whose parent is its session's starter is one (a dead
+    driver's children have another parent, so a reused pid is never taken for it). The daemons are looked for
+    again after the processes are listed: a Ray starting meanwhile starts its GCS before anything else of its
+    session, so a process listed is never taken for an orphan for want of a daemon that started while the list
+    was read."""
     processes = ray_processes()
-    live = {p.session for p in ray_processes() if p.daemon}
+    live = {p.session for p in processes if p.ppid == _starter(p.session)}
+    live |= {p.session for p in ray_processes() if p.daemon}
     return [p for p in processes if p.session not in live]
 
 
