@@ -17,7 +17,7 @@ import scipy.stats
 from atdrone.benchmark import report, report_figures
 from atdrone.benchmark.cells import Cell, cells, experiment_document, load_benchmark
 from atdrone.benchmark.report import write_report
-from atdrone.benchmark.weights import keep_weights
+from atdrone.benchmark.weights import card_text, keep_weights
 from atdrone.config import ConfigError
 from atdrone.hostinfo import float_kernels
 from atdrone.policies.zoo import checkpoint_path, load_zoo
@@ -164,6 +164,9 @@ def test_a_weight_measured_on_other_float_kernels_is_played_again_for_its_card(m
     assert m["metrics"][zoo]["SUC"] != record["metrics"][zoo]["SUC"]  # the made-up numbers are not what it plays
     text = (cfg.results / "weights" / "sp" / "4p2e1o.md").read_text()
     assert "cpu another CPU" in text and f"cpu {float_kernels()['cpu']}" in text
+    assert "played again here, SUC, COL and REW differ from them by at most" in text
+    same = {**m, "cell_metrics": m["metrics"], "cell_measured_on": None}  # a record without its kernels, equal
+    assert "a host its record does not name" in card_text(same) and "equal them to the last bit" in card_text(same)
 
 
 def test_weights_are_chosen_on_the_validation_zoo_and_load_by_name(made_up, monkeypatch) -> None:

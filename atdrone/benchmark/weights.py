@@ -175,9 +175,11 @@ def _machine_text(machine: dict[str, str] | None) -> str:
 def _cell_text(m: dict[str, Any]) -> str:
     """The line that says where the report's numbers of this seed came from (the card's were played again)."""
     diffs = [abs(m["cell_metrics"][z][k] - v) for z, vs in m["metrics"].items() for k, v in vs.items() if k != "AST"]
+    most = max(diffs, default=0.0)
+    differ = f"differ from them by at most {most:.3g}" if most else "equal them to the last bit"
     return (
         f"- the report's numbers for this seed were measured on {_machine_text(m.get('cell_measured_on'))}; "
-        f"played again here, SUC, COL and REW differ from them by at most {max(diffs, default=0.0):.3g}"
+        f"played again here, SUC, COL and REW {differ}"
     )
 
 
