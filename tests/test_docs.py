@@ -112,6 +112,10 @@ def scratch(tmp_path: Path) -> tuple[Path, dict[str, str]]:
         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
         "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
         "COLUMNS": "120",
+        # one torch thread: in the suite a block's second thread can land on the core the flights' busy loop holds,
+        # at nice +15 against its 0, and every parallel region waits for it (a 5 s block took 73 s); the metrics
+        # are the same to the last bit on one thread or two (benchmarks/eval_threads.py)
+        "OMP_NUM_THREADS": "1",
     }
     env.pop("ATDRONE_REGISTRY", None)
     return tmp_path, env
