@@ -99,7 +99,7 @@ def test_agents_a_killed_drivers_ray_left_are_ended_by_the_next_start_and_live_r
 
 def _driver_alive(session: str) -> bool:
     """Whether the process that started ``session`` lives and still parents some of its processes."""
-    starter = int(session.rsplit("_", 1)[-1])
+    starter = rayclean._starter(session)
     return _alive(starter) and any(p.ppid == starter for p in rayclean.ray_processes() if p.session == session)
 
 
